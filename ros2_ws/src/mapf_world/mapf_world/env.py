@@ -1,0 +1,129 @@
+"""MapfEnv: the DHC grid world with a gymnasium-style reset/step (no gymnasium dependency).
+
+Rewards per agent and step (DHC, paper section III-D): move -0.075; stay on own goal 0; stay off
+goal -0.075; a failed move -0.5 instead. When all agents stand on their goals at the same step the
+episode ends (terminated) and the reward of that step is set to 3 for every agent, as in DHC and
+the paper ("the reward value is set to 3"). An episode has at most `max_steps` steps; reaching it
+without success ends it with truncated=True.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mapf_world.grid import STAY, check_actions
+from mapf_world.heuristics import UNREACHABLE, distance_maps
+from mapf_world.instances import check_instance
+from mapf_world.observation import ObservationBuilder, check_fov_size
+from mapf_world.rules import resolve_moves
+
+REWARD_MOVE = -0.075
+REWARD_STAY_ON_GOAL = 0.0
+REWARD_STAY_OFF_GOAL = -0.075
+REWARD_FAILED_MOVE = -0.5
+REWARD_FINISH = 3.0
+
+
+class MapfEnv:
+    """One instance (map, starts, goals). Arrays follow docs/ARCHITECTURE.md: cells are (row, col)."""
+
+    def __init__(self, grid, starts, goals, fov_size: int = 9, max_steps: int = 256):
+        # Cells on the map, free, distinct, goals reachable (cheap component labels; the BFS waits for reset()).
+        self._grid, self._starts, self._goals = check_instance(grid, starts, goals)
+        if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
+            raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
+        self.fov_size = check_fov_size(fov_size)
+        self.max_steps = int(max_steps)
+        self._dist: np.ndarray | None = None
+        self._builder: ObservationBuilder | None = None
+        self._positions = self._starts.copy()
+        self._last_actions = np.zeros(len(self._starts), dtype=np.int64)
+        self._step = 0
+        self._done = True  # until reset()
+
+    # --- read-only views of the state -----------------------------------------------------------
+    @property
+    def grid(self) -> np.ndarray:
+        return self._grid
+
+    @property
+    def starts(self) -> np.ndarray:
+        return self._starts.copy()
+
+    @property
+    def goals(self) -> np.ndarray:
+        return self._goals.copy()
+
+    @property
+    def n_agents(self) -> int:
+        return int(self._starts.shape[0])
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self._positions.copy()
+
+    @property
+    def last_actions(self) -> np.ndarray:
+        return self._last_actions.copy()
+
+    @property
+    def step_count(self) -> int:
+        return self._step
+
+    @property
+    def dist(self) -> np.ndarray:
+        """(N, H, W) BFS distance maps to each agent's goal (computed once, on first use)."""
+        if self._dist is None:
+            self._dist = distance_maps(self._grid, self._goals)
+            if np.any(self._dist[np.arange(self.n_agents), self._starts[:, 0], self._starts[:, 1]] >= UNREACHABLE):
+                raise AssertionError("component check and BFS disagree on reachability")
+        return self._dist
+
+    @property
+    def observation_builder(self) -> ObservationBuilder:
+        if self._builder is None:
+            self._builder = ObservationBuilder(self._grid, self._goals, self.fov_size, dist=self.dist)
+        return self._builder
+
+    def on_goal(self) -> np.ndarray:
+        return np.all(self._positions == self._goals, axis=1)
+
+    def observe(self) -> dict:
+        return self.observation_builder.build(self._positions, self._last_actions)
+
+    # --- gymnasium-style API --------------------------------------------------------------------
+    def reset(self) -> tuple[dict, dict]:
+        """Back to the starts. The BFS runs on the first reset only (cached per instance)."""
+        self._positions = self._starts.copy()
+        self._last_actions = np.zeros(self.n_agents, dtype=np.int64)
+        self._step = 0
+        on_goal = self.on_goal()
+        # If every agent starts on its goal the case is solved in 0 steps: info["success"] is True
+        # and the episode is already over (step() raises). Generated and benchmark cases never do this.
+        success = bool(on_goal.all())
+        self._done = success
+        obs = self.observe()
+        info = {"failed": np.zeros(self.n_agents, dtype=bool), "on_goal": on_goal, "step": 0, "success": success}
+        return obs, info
+
+    def step(self, actions):
+        if self._done:
+            raise ValueError("the episode has ended (or reset() was never called): call reset() first")
+        acts = check_actions(actions, self.n_agents)
+        stayed_on_goal = (acts == STAY) & self.on_goal()
+        new_pos, failed = resolve_moves(self._grid, self._positions, acts)
+        self._positions = new_pos
+        self._last_actions = acts
+        self._step += 1
+        rewards = np.full(self.n_agents, REWARD_MOVE, dtype=np.float32)
+        rewards[acts == STAY] = REWARD_STAY_OFF_GOAL
+        rewards[stayed_on_goal] = REWARD_STAY_ON_GOAL
+        rewards[failed] = REWARD_FAILED_MOVE
+        on_goal = self.on_goal()
+        success = bool(on_goal.all())
+        terminated = success
+        truncated = (not success) and self._step >= self.max_steps
+        if success:
+            rewards[:] = REWARD_FINISH
+        self._done = terminated or truncated
+        info = {"failed": failed, "on_goal": on_goal, "step": self._step, "success": success}
+        return self.observe(), rewards, terminated, truncated, info

@@ -1,0 +1,133 @@
+"""Per-agent observations (paper section III-B, heuristic channels as in DHC).
+
+fov (6, l, l) float32 centred on the agent, channels in this order:
+  0 static obstacles (cells outside the map count as obstacles)
+  1 other agents (the agent's own cell is 0)
+  2..5 heuristic up, down, left, right: 1 at a cell when the move in that direction from that cell
+       reaches a cell strictly closer (4-connected BFS distance) to THIS agent's goal. Obstacles,
+       cells that cannot reach the goal and cells outside the map are 0.
+last_action (5,) float32 one-hot; position (2,) float32 raw (row, col).
+
+Everything that depends only on the map and the goals is precomputed once, padded by l // 2, so a
+step only gathers windows: row r, col c of the map is row r + l//2, col c + l//2 of the padded
+arrays, and the window of an agent at (r, c) starts at padded (r, c).
+"""
+from __future__ import annotations
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from mapf_world.grid import DELTAS, N_ACTIONS, check_actions, check_cells, check_grid
+from mapf_world.heuristics import distance_maps
+
+N_CHANNELS = 6
+
+
+def heuristic_bits(grid: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(N, 4, H, W) uint8: bit a is 1 where the move UP/DOWN/LEFT/RIGHT (a+1) gets strictly closer."""
+    n, h, w = dist.shape
+    bits = np.zeros((n, 4, h, w), dtype=np.uint8)
+    free = grid == 0
+    for a in range(4):
+        dr, dc = DELTAS[a + 1]
+        # Source cells (rows/cols that have a neighbour on the map in this direction) and neighbours.
+        src = (slice(max(0, -dr), h - max(0, dr)), slice(max(0, -dc), w - max(0, dc)))
+        dst = (slice(max(0, dr), h + min(0, dr)), slice(max(0, dc), w + min(0, dc)))
+        closer = dist[(slice(None),) + dst] < dist[(slice(None),) + src]
+        bits[(slice(None), a) + src] = closer & free[src]
+    return bits
+
+
+def check_fov_size(fov_size) -> int:
+    """The field of view is centred on the agent, so l must be odd; l >= 3 to see any neighbour."""
+    if isinstance(fov_size, bool) or not isinstance(fov_size, (int, np.integer)) or fov_size < 3 or fov_size % 2 == 0:
+        raise ValueError(f"fov_size must be an odd integer >= 3, got {fov_size!r}")
+    return int(fov_size)
+
+
+class ObservationBuilder:
+    """Builds the observations of all agents of one instance (fixed map and goals)."""
+
+    def __init__(self, grid, goals, fov_size: int = 9, dist: np.ndarray | None = None):
+        self.fov_size = check_fov_size(fov_size)
+        self.grid = check_grid(grid)
+        self.goals = check_cells(self.grid, goals, what="goals")
+        self.n_agents = self.goals.shape[0]
+        h, w = self.grid.shape
+        if dist is None:
+            dist = distance_maps(self.grid, self.goals)
+        dist = np.asarray(dist)
+        if dist.shape != (self.n_agents, h, w):
+            raise ValueError(f"dist must have shape {(self.n_agents, h, w)}, got {dist.shape}")
+        r = self.fov_size // 2
+        self._radius = r
+        self._obstacles = np.pad(self.grid, r, constant_values=1).astype(np.float32)
+        self._heuristic = np.pad(heuristic_bits(self.grid, dist), ((0, 0), (0, 0), (r, r), (r, r))).astype(
+            np.float32
+        )
+        # Scratch map of agent cells: marked and cleared again inside each build (one builder per thread).
+        self._agents = np.zeros_like(self._obstacles)
+        win = (self.fov_size, self.fov_size)
+        # Windows as strided views: [row, col] of these is the l x l window of an agent at (row, col).
+        self._obstacle_windows = sliding_window_view(self._obstacles, win)
+        self._heuristic_windows = sliding_window_view(self._heuristic, win, axis=(2, 3))
+        self._agent_windows = sliding_window_view(self._agents, win)
+        self._rows = np.arange(self.n_agents)
+
+    def _check_positions(self, positions) -> np.ndarray:
+        pos = np.asarray(positions)
+        if pos.shape != (self.n_agents, 2):
+            raise ValueError(f"positions must have shape {(self.n_agents, 2)}, got {pos.shape}")
+        if not np.issubdtype(pos.dtype, np.integer) and not np.all(pos == np.round(pos)):
+            raise ValueError(f"positions must be integer cells, got {pos.tolist()}")
+        pos = pos.astype(np.int64, copy=False)
+        h, w = self.grid.shape
+        if pos.min() < 0 or pos[:, 0].max() >= h or pos[:, 1].max() >= w:
+            bad = int(np.flatnonzero((pos < 0).any(1) | (pos[:, 0] >= h) | (pos[:, 1] >= w))[0])
+            raise ValueError(f"agent {bad}: position {pos[bad].tolist()} is off the {h}x{w} map")
+        return pos
+
+    def _mark_agents(self, pos: np.ndarray) -> None:
+        r = self._radius
+        self._agents[r + pos[:, 0], r + pos[:, 1]] = 1.0
+
+    def _unmark_agents(self, pos: np.ndarray) -> None:
+        r = self._radius
+        self._agents[r + pos[:, 0], r + pos[:, 1]] = 0.0
+
+    def build(self, positions, last_actions) -> dict:
+        """Observations of all agents: fov (N, 6, l, l), last_action (N, 5), position (N, 2)."""
+        pos = self._check_positions(positions)
+        acts = check_actions(last_actions, self.n_agents)
+        rr, cc = pos[:, 0], pos[:, 1]
+        n, size, r = self.n_agents, self.fov_size, self._radius
+        fov = np.empty((n, N_CHANNELS, size, size), dtype=np.float32)
+        fov[:, 0] = self._obstacle_windows[rr, cc]
+        self._mark_agents(pos)
+        fov[:, 1] = self._agent_windows[rr, cc]
+        self._unmark_agents(pos)
+        fov[:, 1, r, r] = 0.0
+        fov[:, 2:] = self._heuristic_windows[self._rows, :, rr, cc]
+        one_hot = np.zeros((n, N_ACTIONS), dtype=np.float32)
+        one_hot[self._rows, acts] = 1.0
+        return {"fov": fov, "last_action": one_hot, "position": pos.astype(np.float32)}
+
+    def build_one(self, i: int, positions, last_action) -> dict:
+        """Observation of agent i alone (no batch dimension); positions are all agents' cells."""
+        if not 0 <= int(i) < self.n_agents:
+            raise ValueError(f"agent index {i} is outside 0..{self.n_agents - 1}")
+        i = int(i)
+        pos = self._check_positions(positions)
+        act = int(check_actions(np.atleast_1d(last_action), 1)[0])
+        row, col = int(pos[i, 0]), int(pos[i, 1])
+        size, r = self.fov_size, self._radius
+        fov = np.empty((N_CHANNELS, size, size), dtype=np.float32)
+        fov[0] = self._obstacle_windows[row, col]
+        self._mark_agents(pos)
+        fov[1] = self._agent_windows[row, col]
+        self._unmark_agents(pos)
+        fov[1, r, r] = 0.0
+        fov[2:] = self._heuristic_windows[i, :, row, col]
+        one_hot = np.zeros(N_ACTIONS, dtype=np.float32)
+        one_hot[act] = 1.0
+        return {"fov": fov, "last_action": one_hot, "position": pos[i].astype(np.float32)}
