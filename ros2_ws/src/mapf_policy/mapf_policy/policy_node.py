@@ -1,0 +1,126 @@
+"""Policy node: one per robot (namespace /robot_<i>), its own copy of the learned grid policy.
+
+Subscribes to its own relative `observation` topic only and publishes its own relative `action`
+(mapf_msgs/AgentObservation -> mapf_msgs/AgentAction). It never names another robot's topic: the
+robots do not communicate (paper section V-B); the namespace it is started in decides its topics.
+It refuses to start (exit 2) when the model file is missing or does not hold a compatible network.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from mapf_msgs.msg import AgentAction, AgentObservation
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+
+from mapf_world.fleet_core import resolve_robot_id
+
+DEFAULT_MODEL = "models/hscl.pt"
+
+
+def resolve_model_path(value: str) -> Path:
+    """An absolute path as is; a relative one against the working directory, then $MAPF_ROOT."""
+    if not value:
+        raise ValueError("parameter model_path is empty; name a model file (default models/hscl.pt)")
+    path = Path(value).expanduser()
+    if path.is_absolute():
+        candidates = [path]
+    else:
+        candidates = [Path.cwd() / path]
+        if os.environ.get("MAPF_ROOT"):
+            candidates.append(Path(os.environ["MAPF_ROOT"]) / path)
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    tried = ", ".join(str(c) for c in candidates)
+    raise FileNotFoundError(f"model file {value!r} not found (looked at {tried}); train one with scripts/train "
+                            f"or pass -p model_path:=/path/to/model.pt")
+
+
+class PolicyNode(Node):
+    def __init__(self):
+        super().__init__("policy_node")
+        self.declare_parameter("robot_id", -1)
+        self.declare_parameter("model_path", DEFAULT_MODEL)
+        self.declare_parameter("torch_threads", 1)
+        self.declare_parameter("device", "cpu")
+        self.robot_id = resolve_robot_id(self.get_parameter("robot_id").value, self.get_namespace())
+        threads = self.get_parameter("torch_threads").value
+        if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+            raise ValueError(f"parameter torch_threads must be an integer >= 1, got {threads!r}")
+        model_path = resolve_model_path(str(self.get_parameter("model_path").value))
+
+        from mapf_policy.policy import Policy  # torch is imported only once the inputs are known good
+        t0 = time.perf_counter()
+        device = str(self.get_parameter("device").value)
+        try:
+            self.policy = Policy(str(model_path), num_threads=threads, device=device)
+        except RuntimeError as exc:  # torch: unknown or unavailable device
+            raise ValueError(f"cannot run the model on device {device!r}: {exc}") from exc
+        self.fov_size = int(self.policy.network_config.fov_size)
+        l = self.fov_size
+        # Warm-up: the first forward pass is slow; do it before announcing the action publisher.
+        self.policy.act(np.zeros((1, 6, l, l), np.float32), np.eye(5, dtype=np.float32)[:1], np.zeros((1, 2), np.float32))
+        self.get_logger().info(f"robot {self.robot_id}: model {model_path} (fov {l}) ready in "
+                               f"{time.perf_counter() - t0:.2f} s")
+        self.action_pub = self.create_publisher(AgentAction, "action", 10)
+        self.create_subscription(AgentObservation, "observation", self.on_observation, 10)
+
+    def on_observation(self, msg: AgentObservation) -> None:
+        log = self.get_logger()
+        l = self.fov_size
+        if msg.robot_id != self.robot_id:
+            log.error(f"observation for robot {msg.robot_id} on robot {self.robot_id}'s topic: not answered")
+            return
+        if msg.fov_size != l or len(msg.fov) != 6 * l * l:
+            log.error(f"step {msg.step}: observation fov_size {msg.fov_size} with {len(msg.fov)} values, but the "
+                      f"model needs fov_size {l} ({6 * l * l} values): not answered")
+            return
+        fov = np.asarray(msg.fov, dtype=np.float32).reshape(1, 6, l, l)
+        last_action = np.asarray(msg.last_action, dtype=np.float32).reshape(1, 5)
+        position = np.asarray(msg.position, dtype=np.float32).reshape(1, 2)
+        action = int(self.policy.act(fov, last_action, position)[0])
+        out = AgentAction()
+        out.header.stamp = self.get_clock().now().to_msg()
+        out.step = msg.step
+        out.robot_id = self.robot_id
+        out.action = action
+        self.action_pub.publish(out)
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    try:
+        node = PolicyNode()
+    except (ValueError, FileNotFoundError, ParameterException) as exc:
+        print(f"[policy_node] refusing to start: {exc}", file=sys.stderr, flush=True)
+        rclpy.try_shutdown()
+        raise SystemExit(2)
+    except KeyboardInterrupt:  # SIGINT while starting up (e.g. loading the model)
+        rclpy.try_shutdown()
+        return
+    except Exception:
+        if rclpy.ok():
+            raise
+        return  # SIGINT/SIGTERM shut the context down while the node was being created
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception:
+        if rclpy.ok():
+            raise
+        # else: a signal shut the context down while a callback ran (an rclpy race): a clean stop
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,167 @@
+"""Start fleet nodes as separate processes, the way `ros2 run` would (launch is not available here).
+
+`node_command("mapf_policy", "policy_node", namespace="/robot_0", params={...})` gives
+    [<prefix>/lib/mapf_policy/policy_node, --ros-args, -r, __ns:=/robot_0, --params-file, ..., -p, k:=v]
+where <prefix> comes from the ament index, i.e. exactly the executable `ros2 run mapf_policy
+policy_node` starts on a full ROS 2 install. `ProcessGroup` runs such commands with one log file
+each, stops them with SIGINT (then SIGTERM, then SIGKILL if they hang) and reads their CPU time and
+memory from /proc.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import yaml
+
+
+def executable(package: str, name: str) -> Path:
+    """install/<package>/lib/<package>/<name>; ValueError when it is not there."""
+    from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+    try:
+        prefix = Path(get_package_prefix(package))
+    except PackageNotFoundError as exc:
+        raise ValueError(f"package {package!r} is not installed (source ros2_ws/install/setup.bash)") from exc
+    path = prefix / "lib" / package / name
+    if not os.access(path, os.X_OK):
+        raise ValueError(f"no executable {path}; is {name!r} a console script of {package}?")
+    return path
+
+
+def config_file(package: str, name: str) -> Path:
+    """share/<package>/config/<name> through the ament index."""
+    from ament_index_python.packages import get_package_share_directory
+    path = Path(get_package_share_directory(package)) / "config" / name
+    if not path.is_file():
+        raise ValueError(f"no parameter file {path}")
+    return path
+
+
+def param_value(value) -> str:
+    """A Python value as the YAML text that `-p name:=value` parses back to the same value."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        if value != value or value in (float("inf"), float("-inf")):
+            return {"nan": ".nan", "inf": ".inf", "-inf": "-.inf"}[repr(value)]
+        mantissa, e, exponent = repr(value).partition("e")
+        # YAML 1.1 reads "1e-09" as a string: the mantissa needs a decimal point.
+        return (mantissa if "." in mantissa else mantissa + ".0") + (e + exponent if e else "")
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, str):
+        return value if value and yaml.safe_load(value) == value and ":" not in value else json.dumps(value)
+    if isinstance(value, (list, tuple)):
+        return json.dumps(list(value))
+    raise ValueError(f"cannot pass a {type(value).__name__} as a ROS parameter: {value!r}")
+
+
+def node_command(package: str, name: str, namespace: Optional[str] = None, params: Optional[dict] = None,
+                 params_file: Optional[Path] = None, node_name: Optional[str] = None) -> List[str]:
+    cmd = [str(executable(package, name)), "--ros-args"]
+    if namespace:
+        cmd += ["-r", f"__ns:={namespace}"]
+    if node_name:
+        cmd += ["-r", f"__node:={node_name}"]
+    if params_file:
+        cmd += ["--params-file", str(params_file)]
+    for key, value in (params or {}).items():
+        cmd += ["-p", f"{key}:={param_value(value)}"]
+    return cmd
+
+
+@dataclass
+class Usage:
+    """CPU seconds (user + system) and memory of one process, read from /proc."""
+    cpu_s: float
+    rss_mb: float
+    peak_rss_mb: float
+
+
+def read_usage(pid: int) -> Optional[Usage]:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return None
+    fields = stat.rsplit(")", 1)[1].split()
+    ticks = os.sysconf("SC_CLK_TCK")
+    cpu = (int(fields[11]) + int(fields[12])) / ticks  # utime, stime
+    mem = {}
+    for line in status.splitlines():
+        key, _, rest = line.partition(":")
+        if key in ("VmRSS", "VmHWM"):
+            mem[key] = int(rest.split()[0]) / 1024.0
+    return Usage(cpu, mem.get("VmRSS", 0.0), mem.get("VmHWM", 0.0))
+
+
+class ProcessGroup:
+    """Named node processes with one log file each; stop() is SIGINT first, then escalates."""
+
+    def __init__(self, log_dir: Path, env: Optional[Dict[str, str]] = None):
+        self.log_dir = Path(log_dir)
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.env = dict(os.environ if env is None else env)
+        self.procs: Dict[str, subprocess.Popen] = {}
+        self._logs = {}
+
+    def start(self, name: str, cmd: List[str]) -> subprocess.Popen:
+        if name in self.procs and self.procs[name].poll() is None:
+            raise ValueError(f"process {name!r} is already running")
+        log = open(self.log_dir / f"{name}.log", "ab")
+        log.write((" ".join(cmd) + "\n").encode())
+        log.flush()
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, stdin=subprocess.DEVNULL)
+        self.procs[name] = proc
+        self._logs[name] = log
+        return proc
+
+    def log_text(self, name: str) -> str:
+        return (self.log_dir / f"{name}.log").read_text(errors="replace")
+
+    def usage(self, name: str) -> Optional[Usage]:
+        proc = self.procs.get(name)
+        return read_usage(proc.pid) if proc is not None and proc.poll() is None else None
+
+    def send(self, name: str, sig: int) -> None:
+        proc = self.procs[name]
+        if proc.poll() is None:
+            proc.send_signal(sig)
+
+    def stop(self, name: str, sig: int = signal.SIGINT, timeout: float = 10.0) -> Optional[int]:
+        """Signal one process and wait; escalate to SIGTERM, then SIGKILL. Returns its exit code."""
+        proc = self.procs.get(name)
+        if proc is None:
+            return None
+        for s, wait in ((sig, timeout), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+            if proc.poll() is not None:
+                break
+            proc.send_signal(s)
+            try:
+                proc.wait(timeout=wait)
+            except subprocess.TimeoutExpired:
+                continue
+        self._logs[name].close()
+        return proc.returncode
+
+    def stop_all(self, names: Optional[List[str]] = None, sig: int = signal.SIGINT, timeout: float = 10.0) -> Dict[str, Optional[int]]:
+        """Signal all (or the named) processes at once, then wait for each."""
+        names = list(self.procs) if names is None else names
+        for name in names:
+            if self.procs[name].poll() is None:
+                self.procs[name].send_signal(sig)
+        deadline = time.monotonic() + timeout
+        codes = {}
+        for name in names:
+            try:
+                self.procs[name].wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pass
+            codes[name] = self.stop(name, signal.SIGTERM)
+        return codes

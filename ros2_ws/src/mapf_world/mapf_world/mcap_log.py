@@ -1,0 +1,171 @@
+"""MCAP files the way rosbag2 writes them (no rclpy needed here).
+
+- profile "ros2";
+- one schema per message type, named "pkg/msg/Name", encoding "ros2msg", whose text is the complete
+  definition: the type's own .msg text, then every nested type once (depth-first, in order of first
+  use), each after a line of 80 '=' and a line "MSG: pkg/Name";
+- one channel per topic, message encoding "cdr" (payloads from rclpy.serialization), with the
+  publishers' QoS as "offered_qos_profiles" metadata when known.
+
+The .msg files are found through the ament index (share/<pkg>/msg/<Name>.msg), so a type from any
+package on AMENT_PREFIX_PATH works, including this project's mapf_msgs.
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Tuple
+
+from mcap.writer import CompressionType, Writer
+
+PRIMITIVES = frozenset("bool byte char float32 float64 int8 uint8 int16 uint16 int32 uint32 int64 uint64 "
+                       "string wstring".split())
+SEPARATOR = "=" * 80
+
+
+def split_type_name(type_name: str) -> Tuple[str, str]:
+    """'pkg/msg/Name' or 'pkg/Name' -> ('pkg', 'Name'); ValueError otherwise."""
+    parts = type_name.split("/")
+    if len(parts) == 3 and parts[1] == "msg":
+        return parts[0], parts[2]
+    if len(parts) == 2:
+        return parts[0], parts[1]
+    raise ValueError(f"message type {type_name!r} is not of the form 'pkg/msg/Name' or 'pkg/Name'")
+
+
+def msg_file(package: str, name: str) -> Path:
+    """Path of share/<package>/msg/<name>.msg through the ament index."""
+    from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+    try:
+        share = Path(get_package_share_directory(package))
+    except PackageNotFoundError as exc:
+        raise ValueError(f"message package {package!r} is not in the ament index (AMENT_PREFIX_PATH)") from exc
+    path = share / "msg" / f"{name}.msg"
+    if not path.is_file():
+        raise ValueError(f"no definition file {path} for message type {package}/{name}")
+    return path
+
+
+def field_types(text: str, package: str) -> List[str]:
+    """The non-primitive field types of a .msg text as 'pkg/Name', in order (constants skipped)."""
+    found = []
+    for raw in text.splitlines():
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        tokens = line.split()
+        if len(tokens) < 2:
+            raise ValueError(f"cannot parse message definition line {raw!r} of package {package}")
+        if "=" in tokens[1] or (len(tokens) > 2 and tokens[2].startswith("=")):
+            continue  # a constant: always a primitive type
+        base = re.sub(r"\[.*\]$", "", tokens[0])
+        base = re.sub(r"<=\d+$", "", base)
+        if base in PRIMITIVES:
+            continue
+        if base == "Header":
+            found.append("std_msgs/Header")
+        elif "/" in base:
+            pkg, name = split_type_name(base)
+            found.append(f"{pkg}/{name}")
+        else:
+            found.append(f"{package}/{base}")
+    return found
+
+
+def message_definition(type_name: str, read: Optional[Callable[[str, str], str]] = None) -> str:
+    """Complete ros2msg definition text of type_name, as rosbag2 stores it in MCAP schemas.
+
+    read(package, name) -> .msg text; defaults to the installed .msg files (ament index).
+    """
+    if read is None:
+        def read(package: str, name: str) -> str:
+            return msg_file(package, name).read_text()
+    package, name = split_type_name(type_name)
+    root = read(package, name)
+    parts = [root.rstrip("\n")]
+    seen = {f"{package}/{name}"}
+
+    def visit(text: str, pkg: str) -> None:
+        for dep in field_types(text, pkg):
+            if dep in seen:
+                continue
+            seen.add(dep)
+            dep_pkg, dep_name = split_type_name(dep)
+            dep_text = read(dep_pkg, dep_name)
+            parts.append(f"{SEPARATOR}\nMSG: {dep}\n{dep_text.rstrip(chr(10))}")
+            visit(dep_text, dep_pkg)
+
+    visit(root, package)
+    return "\n".join(parts) + "\n"
+
+
+class McapRos2Writer:
+    """Append-only writer of ROS 2 CDR messages to one MCAP file (rosbag2-compatible layout)."""
+
+    def __init__(self, path, chunk_size: int = 1 << 20, compression: str = "zstd",
+                 definition: Callable[[str], str] = message_definition):
+        self.path = Path(path)
+        try:
+            comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
+        except KeyError:
+            raise ValueError(f"compression must be 'zstd', 'lz4' or 'none', got {compression!r}") from None
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._stream = open(self.path, "wb")
+        self._writer = Writer(self._stream, chunk_size=chunk_size, compression=comp)
+        self._writer.start(profile="ros2", library="mapf_world.mcap_log")
+        self._definition = definition
+        self._schemas: Dict[str, int] = {}
+        self._channels: Dict[str, Tuple[int, str]] = {}
+        self._sequence: Dict[int, int] = {}
+        self.message_count = 0
+        self.closed = False
+
+    def add_channel(self, topic: str, type_name: str, offered_qos: str = "") -> int:
+        """Channel id of topic (registered once; the type must not change)."""
+        pkg, name = split_type_name(type_name)
+        full = f"{pkg}/msg/{name}"
+        if topic in self._channels:
+            cid, known = self._channels[topic]
+            if known != full:
+                raise ValueError(f"topic {topic} already recorded as {known}, now offered as {full}")
+            return cid
+        if full not in self._schemas:
+            text = self._definition(full)
+            self._schemas[full] = self._writer.register_schema(name=full, encoding="ros2msg", data=text.encode())
+        metadata = {"offered_qos_profiles": offered_qos} if offered_qos else {}
+        cid = self._writer.register_channel(topic=topic, message_encoding="cdr",
+                                            schema_id=self._schemas[full], metadata=metadata)
+        self._channels[topic] = (cid, full)
+        self._sequence[cid] = 0
+        return cid
+
+    def write(self, channel_id: int, data: bytes, log_time_ns: int, publish_time_ns: Optional[int] = None) -> None:
+        if self.closed:
+            raise RuntimeError(f"{self.path} is closed")
+        seq = self._sequence[channel_id]
+        self._sequence[channel_id] = seq + 1
+        self._writer.add_message(channel_id=channel_id, log_time=int(log_time_ns), data=bytes(data),
+                                 publish_time=int(log_time_ns if publish_time_ns is None else publish_time_ns),
+                                 sequence=seq)
+        self.message_count += 1
+
+    def flush(self) -> None:
+        """Write the chunk in progress to disk (a crash after this loses nothing written so far)."""
+        if not self.closed:
+            self._writer.flush()
+
+    def close(self) -> None:
+        """Finish the file (summary, indexes); safe to call twice."""
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            self._writer.finish()
+        finally:
+            self._stream.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

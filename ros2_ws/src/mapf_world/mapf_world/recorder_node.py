@@ -1,0 +1,150 @@
+"""Recorder: every fleet topic to one MCAP file, the way rosbag2 does (see mcap_log.py).
+
+Topics are discovered on the live graph (like `ros2 bag record -a`, or only the names listed in the
+`topics` parameter) and subscribed as raw CDR once a publisher exists, with a QoS that matches the
+publishers (transient local for latched topics such as /map). The file is finalised on SIGINT or
+SIGTERM: the chunk in progress is flushed and the writer closed in `finally`, so it stays readable.
+"""
+from __future__ import annotations
+
+import importlib
+import re
+import sys
+import time
+from pathlib import Path
+
+import rclpy
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from mapf_world.mcap_log import McapRos2Writer
+
+
+def message_class(type_name: str):
+    """'pkg/msg/Name' -> the generated Python class; ValueError when it cannot be imported."""
+    try:
+        pkg, kind, name = type_name.split("/")
+        return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
+    except (ValueError, ImportError, AttributeError) as exc:
+        raise ValueError(f"cannot import message type {type_name!r}: {exc}") from exc
+
+
+def matching_qos(publishers) -> QoSProfile:
+    """A subscription QoS compatible with every publisher (rosbag2's adaptation rule)."""
+    profiles = [p.qos_profile for p in publishers]
+    reliable = all(q.reliability == ReliabilityPolicy.RELIABLE for q in profiles)
+    latched = all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in profiles)
+    depth = max([100] + [q.depth for q in profiles])
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
+def qos_yaml(publishers) -> str:
+    """The publishers' QoS as rosbag2's offered_qos_profiles metadata (a YAML list)."""
+    lines = []
+    for p in publishers:
+        q = p.qos_profile
+        lines += [f"- history: {q.history.name.lower()}", f"  depth: {q.depth}",
+                  f"  reliability: {q.reliability.name.lower()}", f"  durability: {q.durability.name.lower()}"]
+    return "\n".join(lines) + "\n" if lines else ""
+
+
+class Recorder(Node):
+    def __init__(self):
+        super().__init__("recorder")
+        self.declare_parameter("output", "fleet.mcap")
+        self.declare_parameter("topics", [""])           # [""] or []: every topic on the graph
+        self.declare_parameter("exclude_regex", r"^/parameter_events$")
+        self.declare_parameter("discovery_period_s", 0.25)
+        self.declare_parameter("flush_period_s", 1.0)
+        self.declare_parameter("compression", "zstd")
+        output = str(self.get_parameter("output").value)
+        self._only = {t for t in self.get_parameter("topics").value if t}
+        try:
+            self._exclude = re.compile(self.get_parameter("exclude_regex").value)
+        except re.error as exc:
+            raise ValueError(f"parameter exclude_regex is not a valid regular expression: {exc}") from exc
+        discovery = float(self.get_parameter("discovery_period_s").value)
+        flush = float(self.get_parameter("flush_period_s").value)
+        if not output:
+            raise ValueError("parameter output must name the MCAP file to write")
+        if not (discovery > 0 and flush > 0):
+            raise ValueError(f"discovery_period_s and flush_period_s must be > 0, got {discovery}, {flush}")
+        self.writer = McapRos2Writer(Path(output), compression=str(self.get_parameter("compression").value))
+        self._subs = {}
+        self._refused = set()
+        self.create_timer(discovery, self._discover)
+        self.create_timer(flush, self.writer.flush)
+        self.get_logger().info(f"recording to {self.writer.path} "
+                               f"({'topics ' + ', '.join(sorted(self._only)) if self._only else 'every topic'})")
+        self._discover()
+
+    def _discover(self) -> None:
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self._subs or topic in self._refused or self._exclude.search(topic):
+                continue
+            if self._only and topic not in self._only:
+                continue
+            publishers = self.get_publishers_info_by_topic(topic)
+            if not publishers:
+                continue  # only subscribers so far: the publisher's QoS is not known yet
+            if len(types) != 1:
+                self.get_logger().error(f"topic {topic} has several types {types}; not recorded")
+                self._refused.add(topic)
+                continue
+            try:
+                cls = message_class(types[0])
+                cid = self.writer.add_channel(topic, types[0], qos_yaml(publishers))
+            except ValueError as exc:
+                self.get_logger().error(f"topic {topic} not recorded: {exc}")
+                self._refused.add(topic)
+                continue
+
+            def on_message(data, info, cid=cid):
+                self.writer.write(cid, data, log_time_ns=time.time_ns(),
+                                  publish_time_ns=info.get("source_timestamp") or None)
+
+            self._subs[topic] = self.create_subscription(cls, topic, on_message, matching_qos(publishers), raw=True)
+            self.get_logger().info(f"recording {topic} [{types[0]}]")
+
+    def close(self) -> None:
+        self.writer.close()
+        # print, not the ROS logger: after SIGINT the context (and /rosout) is already shut down.
+        print(f"[recorder] wrote {self.writer.message_count} messages on {len(self._subs)} topics "
+              f"to {self.writer.path}", file=sys.stderr, flush=True)
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    try:
+        node = Recorder()
+    except (ValueError, OSError, ParameterException) as exc:
+        print(f"[recorder] refusing to start: {exc}", file=sys.stderr, flush=True)
+        rclpy.try_shutdown()
+        raise SystemExit(2)
+    except KeyboardInterrupt:  # SIGINT while starting up
+        rclpy.try_shutdown()
+        return
+    except Exception:
+        if rclpy.ok():
+            raise
+        return  # SIGINT/SIGTERM shut the context down while the node was being created
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception:
+        if rclpy.ok():
+            raise
+        # else: a signal shut the context down while a callback ran (an rclpy race): a clean stop
+    finally:
+        node.close()
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

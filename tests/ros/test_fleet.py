@@ -1,0 +1,173 @@
+"""Three robots as separate processes on a small map: the run, its MCAP log and the live ROS graph.
+
+One fleet run (module fixture) feeds all tests here. Goal reaching needs the trained model
+(models/hscl.pt); with an untrained model of the same architecture the plumbing is still checked.
+"""
+from __future__ import annotations
+
+import json
+import math
+import re
+
+import numpy as np
+import pytest
+
+from fleet_helpers import TRAINED_MODEL, Fleet, GraphProbe
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.filterwarnings("ignore::DeprecationWarning")]
+
+MAX_V, MAX_W = 0.2, 1.57
+CELL = 0.3
+ROBOT_TOPIC = re.compile(r"^/robot_(\d+)/")
+
+
+def graph_of(probe: GraphProbe, name: str, ns: str):
+    node = probe.node
+    try:
+        pubs = node.get_publisher_names_and_types_by_node(name, ns)
+        subs = node.get_subscriber_names_and_types_by_node(name, ns)
+    except Exception:  # not discovered yet
+        return None
+    return {"pubs": sorted(t for t, _ in pubs), "subs": sorted(t for t, _ in subs)}
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory, module_domain_id, any_model):
+    out = tmp_path_factory.mktemp("fleet")
+    fleet = Fleet(out, module_domain_id, any_model, world=dict(max_steps=12 if TRAINED_MODEL.is_file() else 6))
+    probe = GraphProbe(module_domain_id)
+    fleet.start()
+    graph = {}
+    try:
+        fleet.wait_running()
+        for i in range(fleet.n):
+            for name in ("policy_node", "drive_executor"):
+                graph[(name, i)] = probe.spin_until(
+                    lambda: (g := graph_of(probe, name, f"/robot_{i}")) and g["pubs"] and g["subs"] and g,
+                    timeout=10.0, what=f"{name} of robot {i} on the graph")
+        world_code = fleet.wait_world(timeout=120)
+    finally:
+        codes = fleet.stop()
+        probe.close()
+    from mapf_world.fleet_replay import load_run
+    return dict(fleet=fleet, graph=graph, world_code=world_code, codes=codes, log=load_run(fleet.mcap),
+                summary=json.loads(fleet.summary.read_text()))
+
+
+def test_every_node_ends_cleanly(run):
+    assert run["world_code"] == 0, run["fleet"].group.log_text("world")[-2000:]
+    assert all(code == 0 for code in run["codes"].values()), run["codes"]
+
+
+def test_policy_nodes_use_only_their_own_topics(run):
+    for i in range(3):
+        g = run["graph"][("policy_node", i)]
+        assert f"/robot_{i}/observation" in g["subs"], g
+        assert f"/robot_{i}/action" in g["pubs"], g
+        for topic in g["pubs"] + g["subs"]:
+            m = ROBOT_TOPIC.match(topic)
+            assert m is None or int(m.group(1)) == i, f"policy node of robot {i} uses {topic}"
+            assert m or topic in ("/rosout", "/parameter_events"), f"policy node of robot {i} uses {topic}"
+
+
+def test_drive_executors_use_only_their_own_topics(run):
+    for i in range(3):
+        g = run["graph"][("drive_executor", i)]
+        assert {f"/robot_{i}/cmd_vel", f"/robot_{i}/odom"} <= set(g["pubs"]), g
+        assert f"/robot_{i}/cell_move" in g["subs"], g
+        for topic in g["pubs"] + g["subs"]:
+            m = ROBOT_TOPIC.match(topic)
+            assert m is None or int(m.group(1)) == i, f"drive executor of robot {i} uses {topic}"
+
+
+def test_mcap_holds_every_robot_topic(run):
+    log, steps = run["log"], run["summary"]["steps"]
+    assert steps >= 1
+    for i in range(3):
+        for kind in ("observation", "action", "cell_move", "cmd_vel", "odom"):
+            assert log.counts[f"/robot_{i}/{kind}"] > 0, f"no /robot_{i}/{kind} in the log: {log.counts}"
+        assert [o.step for o in log.observations[i]] == list(range(steps))
+        assert [a.step for a in log.actions[i]] == list(range(steps))
+        assert all(o.robot_id == i for o in log.observations[i])
+    assert log.counts["/map"] == 1 and log.counts["/fleet/status"] >= steps + 1
+
+
+def test_mcap_is_rosbag2_style(run):
+    from mcap.reader import make_reader
+    from mcap_ros2.reader import read_ros2_messages
+    with open(run["fleet"].mcap, "rb") as f:
+        reader = make_reader(f)
+        assert reader.get_header().profile == "ros2"
+        summary = reader.get_summary()
+    assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
+    assert {c.message_encoding for c in summary.channels.values()} == {"cdr"}
+    n = sum(1 for _ in read_ros2_messages(str(run["fleet"].mcap)))
+    assert n == summary.statistics.message_count
+
+
+def test_velocities_never_exceed_the_limits(run):
+    log = run["log"]
+    for i in range(3):
+        cmds = np.array([(v, w) for _, v, w in log.cmd_vel[i]])
+        assert np.abs(cmds[:, 0]).max() <= MAX_V + 1e-9 and np.abs(cmds[:, 1]).max() <= MAX_W + 1e-9
+        od = np.array(log.odom[i])   # t, x, y, yaw, v, w
+        assert np.abs(od[:, 4]).max() <= MAX_V + 1e-9 and np.abs(od[:, 5]).max() <= MAX_W + 1e-9
+        # The poses themselves, against their (simulated) stamps: physical speeds.
+        dt = np.diff(od[:, 0])
+        assert (dt > 0).all(), "odom stamps must increase"
+        speed = np.hypot(np.diff(od[:, 1]), np.diff(od[:, 2])) / dt
+        turn = np.abs((np.diff(od[:, 3]) + np.pi) % (2 * np.pi) - np.pi) / dt
+        assert speed.max() <= MAX_V * 1.001 and turn.max() <= MAX_W * 1.001
+        moved = any(a != "stay" for a in np.array(run["summary"]["actions"])[:, i])
+        assert moved, f"robot {i} never moved: nothing checked (the model should make every robot move)"
+        assert speed.max() > 0.5 * MAX_V, "a moving robot drives near its top speed"
+
+
+def test_odometry_ends_on_the_final_cells(run):
+    log, summary = run["log"], run["summary"]
+    final = summary["positions"][-1]
+    for i in range(3):
+        _, x, y, *_ = log.odom[i][-1]
+        r, c = final[i]
+        assert math.hypot(x - c * CELL, y + r * CELL) < 1e-6, f"robot {i} odom ({x}, {y}) vs cell {(r, c)}"
+
+
+def test_logged_cells_match_the_world_summary(run):
+    assert run["log"].positions().tolist() == run["summary"]["positions"]
+
+
+@pytest.mark.skipif(not TRAINED_MODEL.is_file(), reason=f"no trained model at {TRAINED_MODEL} (the policy issue ships it)")
+def test_all_robots_reach_their_goals_without_failed_moves(run):
+    s = run["summary"]
+    assert s["success"], s["detail"]
+    assert s["failed_moves"] == 0 and s["timeouts"] == 0 and s["rejected"] == 0
+    assert s["positions"][-1] == s["goals"]
+    log = run["log"]
+    for i, (r, c) in enumerate(s["goals"]):
+        _, x, y, *_ = log.odom[i][-1]
+        assert math.hypot(x - c * CELL, y + r * CELL) < 1e-6
+
+
+def test_observations_are_mapf_env_observations_and_actions_the_policy_s(run, any_model):
+    """The world builds observations with MapfEnv's code; each policy node answers as the Policy would."""
+    from mapf_policy.policy import Policy
+    from mapf_world.env import MapfEnv
+    from mapf_world.fleet_core import load_fleet_instance
+
+    fleet, log, s = run["fleet"], run["log"], run["summary"]
+    p = fleet.world_params
+    inst = load_fleet_instance("map", map_file=p["map_file"], scen_file=p["scen_file"], n_robots=3)
+    env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=1000)
+    obs, _ = env.reset()
+    policy = Policy(str(any_model))
+    for k in range(s["steps"]):
+        requested = [log.moves[k][i].requested_action for i in range(3)]
+        for i in range(3):
+            msg = log.observations[i][k]
+            assert np.array_equal(np.asarray(msg.fov, np.float32).reshape(obs["fov"][i].shape), obs["fov"][i]), (k, i)
+            assert np.array_equal(np.asarray(msg.last_action, np.float32), obs["last_action"][i]), (k, i)
+            assert list(msg.position) == obs["position"][i].astype(int).tolist()
+            expected = int(policy.act(obs["fov"][i], obs["last_action"][i], obs["position"][i])[0])
+            assert log.actions[i][k].action == expected == requested[i], (k, i)
+        obs, *_ = env.step(requested)
+        assert env.positions.tolist() == s["positions"][k + 1]

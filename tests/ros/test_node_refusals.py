@@ -1,0 +1,67 @@
+"""Bad input: every node refuses to start with a clear message and exit status 2.
+
+All cases start at once (module fixture) to keep the wall time low; each test checks one of them.
+"""
+from __future__ import annotations
+
+import subprocess
+
+import pytest
+
+from fleet_helpers import SMALL_MAP, SMALL_SCEN, env_for
+
+pytestmark = [pytest.mark.ros]
+
+W, P, D, R = ("mapf_world", "world_node"), ("mapf_policy", "policy_node"), \
+    ("mapf_policy", "drive_executor"), ("mapf_world", "recorder")
+SCEN = dict(instance_source="map", map_file=str(SMALL_MAP), scen_file=str(SMALL_SCEN))
+
+CASES = {
+    "world_unknown_map_file": (W, None, SCEN | dict(map_file="/no/such/file.map"), "map_file '/no/such/file.map' does not exist"),
+    "world_unknown_source": (W, None, dict(instance_source="maze"), "instance_source must be one of"),
+    "world_more_robots_than_agents": (W, None, SCEN | dict(n_robots=5), "has 3 agents, 5 requested"),
+    "world_zero_robots": (W, None, dict(n_robots=0), "n_robots must be a positive integer"),
+    "world_negative_cell_size": (W, None, dict(cell_size=-0.3), "cell_size must be a positive number"),
+    "world_even_fov": (W, None, dict(fov_size=4), "fov_size must be an odd integer"),
+    "world_bad_pose_source": (W, None, dict(pose_source="gps"), "pose_source must be 'odom' or 'pose_topic'"),
+    "world_wrong_parameter_type": (W, None, dict(cell_size="wide"), "cell_size"),
+    "policy_missing_model": (P, "/robot_0", dict(model_path="/no/such/model.pt"), "model file '/no/such/model.pt' not found"),
+    "policy_incompatible_model": (P, "/robot_0", "GARBAGE_MODEL", "not a readable model file"),
+    "policy_robot_id_disagrees": (P, "/robot_1", dict(robot_id=2), "robot_id 2 disagrees with namespace '/robot_1'"),
+    "policy_no_robot_namespace": (P, None, dict(), "does not end in 'robot_<i>'"),
+    "policy_negative_robot_id": (P, None, dict(robot_id=-4), "robot_id must be an integer >= 0"),
+    "drive_zero_speed": (D, "/robot_0", dict(max_linear_speed=0.0), "max_linear_speed must be a positive number"),
+    "drive_negative_rtf": (D, "/robot_0", dict(real_time_factor=-2.0), "real_time_factor must be a positive number"),
+    "recorder_bad_regex": (R, None, dict(exclude_regex="(", output="/tmp/never.mcap"), "not a valid regular expression"),
+}
+
+
+@pytest.fixture(scope="module")
+def results(module_domain_id, tmp_path_factory):
+    from mapf_world.fleet_launch import node_command
+    garbage = tmp_path_factory.mktemp("models") / "garbage.pt"
+    garbage.write_text("this is not a model\n")
+    procs = {}
+    for name, ((pkg, exe), ns, params, _) in CASES.items():
+        if params == "GARBAGE_MODEL":
+            params = dict(model_path=str(garbage))
+        procs[name] = subprocess.Popen(node_command(pkg, exe, namespace=ns, params=params), env=env_for(module_domain_id),
+                                       stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    out = {}
+    for name, proc in procs.items():
+        try:
+            text, _ = proc.communicate(timeout=90)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            text, _ = proc.communicate()
+            text += "\n<still running after 90 s: killed>"
+        out[name] = (proc.returncode, text)
+    return out
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_node_refuses_to_start(results, case):
+    code, text = results[case]
+    expected = CASES[case][3]
+    assert code == 2, f"exit status {code}, output:\n{text}"
+    assert "refusing to start" in text and expected in text, text
