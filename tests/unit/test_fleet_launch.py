@@ -34,10 +34,11 @@ def test_node_command_is_what_ros2_run_starts():
 def test_process_group_stops_and_measures(tmp_path):
     import sys
     group = ProcessGroup(tmp_path)
-    group.start("sleeper", [sys.executable, "-c", "import time; print('up', flush=True); time.sleep(60)"])
+    group.start("sleeper", [sys.executable, "-c", "import time; print('sleeper' + ' is up', flush=True); time.sleep(60)"])
     import time
     end = time.monotonic() + 60
-    while "up" not in group.log_text("sleeper") and time.monotonic() < end:
+    # The log starts with the command line, so wait for the printed line, which it does not contain.
+    while "sleeper is up" not in group.log_text("sleeper") and time.monotonic() < end:
         time.sleep(0.05)
     usage = group.usage("sleeper")
     assert usage is not None and usage.rss_mb > 1, (usage, group.log_text("sleeper"))

@@ -4,19 +4,24 @@ The planners' search core is C++ (csrc/), compiled here as a plain shared librar
 (`mapf_world/_native*.so`, C ABI, loaded with ctypes), so colcon builds it with the package.
 """
 from glob import glob
+from pathlib import Path
 
 from setuptools import Extension, find_packages, setup
 
 PACKAGE = "mapf_world"
+# colcon runs this file through a symlink in build/, where csrc/ is not linked: find the sources
+# next to the real file. depends= makes a header change rebuild the library.
+CSRC = Path(__file__).resolve().parent / "csrc"
 
-native_sources = sorted(glob("csrc/*.cpp"))
+native_sources = sorted(glob(str(CSRC / "*.cpp")))
 ext_modules = []
 if native_sources:
     ext_modules.append(
         Extension(
             f"{PACKAGE}._native",
             sources=native_sources,
-            include_dirs=["csrc"],
+            depends=sorted(glob(str(CSRC / "*.hpp"))),
+            include_dirs=[str(CSRC)],
             language="c++",
             extra_compile_args=["-O3", "-std=c++17", "-fvisibility=hidden", "-DNDEBUG"],
         )

@@ -1,0 +1,111 @@
+"""The expert behind HSCL labels: ODrM* (paper) or a per-agent shortest-path stand-in (tests, smoke runs).
+
+Two uses:
+- `solve(...)`: a whole expert solution of a training instance, positions (T+1, N, 2), for demonstrations;
+- `make_oracle(...)`: `.actions(positions) -> (N,)` expert actions on states the actors visit (relabelling).
+The stand-in ignores other agents, so it is no MAPF expert: it only keeps the pipeline testable without
+the native planner and is never the default.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mapf_world.env import MapfEnv
+from mapf_world.grid import DELTAS, STAY
+
+
+class ExpertFailed(RuntimeError):
+    """The expert gave no solution; the caller skips the instance (or the rest of an episode's labels).
+
+    `reason`: 'timeout', 'unsolvable', 'fallback' (the oracle answered with its shortest-path fallback,
+    which is no expert label) or 'error' (the planner raised; counted, so planner bugs stay visible).
+    """
+
+    def __init__(self, reason: str, message: str = ""):
+        self.reason = reason
+        super().__init__(message or reason)
+
+
+class ShortestPathExpert:
+    """Each agent takes the first action (in 0..4 order) that lowers its BFS distance to its goal."""
+
+    def __init__(self, grid: np.ndarray, goals: np.ndarray, dist: np.ndarray):
+        self.grid, self.goals, self.dist = grid, goals, dist
+
+    def actions(self, positions: np.ndarray) -> np.ndarray:
+        positions = np.asarray(positions, dtype=np.int64)
+        h, w = self.grid.shape
+        out = np.full(len(positions), STAY, dtype=np.int64)
+        for i, (r, c) in enumerate(positions):
+            here = self.dist[i, r, c]
+            for a in range(1, 5):
+                nr, nc = r + DELTAS[a, 0], c + DELTAS[a, 1]
+                if 0 <= nr < h and 0 <= nc < w and self.dist[i, nr, nc] < here:
+                    out[i] = a
+                    break
+        return out
+
+
+class _OdrmOracle:
+    """Adapter over mapf_world's ExpertOracle: its shortest-path fallback and its errors become ExpertFailed."""
+
+    def __init__(self, oracle):
+        self._oracle = oracle
+
+    def actions(self, positions: np.ndarray) -> np.ndarray:
+        try:
+            actions = np.asarray(self._oracle.actions(np.asarray(positions)), dtype=np.int64)
+        except Exception as exc:  # the states come from MapfEnv, so an error here is the planner's
+            raise ExpertFailed("error", f"ODrM* oracle raised: {exc}") from exc
+        if self._oracle.last_fallback:
+            raise ExpertFailed("fallback", "ODrM* found no plan from these cells")
+        return actions
+
+
+def make_oracle(kind: str, grid: np.ndarray, goals: np.ndarray, dist: np.ndarray, epsilon: float, time_limit: float):
+    if kind == "shortest_path":
+        return ShortestPathExpert(grid, goals, dist)
+    if kind == "odrmstar":
+        from mapf_world.planners.expert import ExpertOracle  # native planner: imported only when used
+
+        return _OdrmOracle(ExpertOracle(grid, goals, epsilon=epsilon, time_limit=time_limit))
+    raise ValueError(f"unknown expert {kind!r} (odrmstar or shortest_path)")
+
+
+def solve(kind: str, env: MapfEnv, epsilon: float, time_limit: float) -> np.ndarray:
+    """Expert joint plan positions (T+1, N, 2) from the env's starts; ExpertFailed if there is none."""
+    if kind == "odrmstar":
+        from mapf_world.planners.odrmstar import plan_odrmstar
+
+        try:
+            result = plan_odrmstar(env.grid, env.starts, env.goals, epsilon=epsilon, time_limit=time_limit)
+        except Exception as exc:  # the instance passed MapfEnv's checks, so an error here is the planner's
+            raise ExpertFailed("error", f"ODrM* raised: {exc}") from exc
+        if result.positions is None:
+            raise ExpertFailed(result.status, f"ODrM* returned status {result.status!r}")
+        return np.asarray(result.positions, dtype=np.int64)
+    if kind == "shortest_path":
+        expert = ShortestPathExpert(env.grid, env.goals, env.dist)
+        env.reset()
+        trajectory = [env.positions]
+        done = False
+        while not done:
+            _, _, terminated, truncated, _ = env.step(expert.actions(env.positions))
+            trajectory.append(env.positions)
+            done = terminated or truncated
+        if not terminated:
+            raise ExpertFailed("timeout", "shortest-path stand-in did not finish within the step limit")
+        return np.stack(trajectory)
+    raise ValueError(f"unknown expert {kind!r} (odrmstar or shortest_path)")
+
+
+def plan_actions(positions: np.ndarray) -> np.ndarray:
+    """(T, N) actions that move a joint plan from step t to t+1; ValueError if a move is not a unit step."""
+    delta = np.diff(positions, axis=0)  # (T, N, 2)
+    actions = np.full(delta.shape[:2], -1, dtype=np.int64)
+    for a, d in enumerate(DELTAS):
+        actions[np.all(delta == d, axis=2)] = a
+    if np.any(actions < 0):
+        t, i = np.argwhere(actions < 0)[0]
+        raise ValueError(f"plan step {t}: agent {i} moves by {delta[t, i].tolist()}, not a unit move")
+    return actions

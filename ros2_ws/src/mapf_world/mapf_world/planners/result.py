@@ -1,0 +1,97 @@
+"""PlanResult, the input checks every planner shares, and plan <-> actions conversions.
+
+Cost convention of every planner here: sum of costs, where agent i pays one per step up to the
+step from which it stays on its goal to the end (waiting on the goal at the end is free; an agent
+that leaves its goal again pays for all its waiting before).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mapf_world.grid import DELTAS, check_cells, check_grid
+from mapf_world.heuristics import connected_components
+from mapf_world.validate import validate_solution
+
+STATUSES = ("solved", "unsolvable", "timeout")
+
+
+@dataclass
+class PlanResult:
+    """Outcome of one planner call.
+
+    status: 'solved', 'unsolvable' (the search space was exhausted: no joint plan exists) or
+    'timeout' (out of time or memory budget, nothing proven). positions: (T+1, N, 2) int64 cells
+    of every agent at steps 0..T when solved, else None. makespan = T; sum_of_costs as in the
+    module docstring. seconds: wall time of the call; expansions: search nodes expanded.
+    """
+
+    status: str
+    positions: np.ndarray | None
+    sum_of_costs: int | None
+    makespan: int | None
+    seconds: float
+    expansions: int
+    message: str = field(default="")
+
+    @property
+    def solved(self) -> bool:
+        return self.status == "solved"
+
+
+def check_time_limit(time_limit) -> float:
+    if isinstance(time_limit, bool) or not isinstance(time_limit, (int, float, np.integer, np.floating)):
+        raise ValueError(f"time_limit must be a number of seconds > 0, got {time_limit!r}")
+    if not math.isfinite(time_limit) or time_limit <= 0:
+        raise ValueError(f"time_limit must be a finite number of seconds > 0, got {time_limit!r}")
+    return float(time_limit)
+
+
+def check_epsilon(epsilon) -> float:
+    if isinstance(epsilon, bool) or not isinstance(epsilon, (int, float, np.integer, np.floating)):
+        raise ValueError(f"epsilon must be a number >= 1, got {epsilon!r}")
+    if not math.isfinite(epsilon) or epsilon < 1:
+        raise ValueError(f"epsilon must be a finite number >= 1, got {epsilon!r}")
+    return float(epsilon)
+
+
+def check_problem(grid, starts, goals) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """MapfEnv's input checks: valid map, free distinct starts and goals, each goal reachable."""
+    grid = check_grid(grid)
+    starts = check_cells(grid, starts, what="starts")
+    goals = check_cells(grid, goals, what="goals")
+    if starts.shape != goals.shape:
+        raise ValueError(f"{len(starts)} starts but {len(goals)} goals")
+    labels = connected_components(grid)
+    bad = labels[starts[:, 0], starts[:, 1]] != labels[goals[:, 0], goals[:, 1]]
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"agent {i}: goal {goals[i].tolist()} is unreachable from start {starts[i].tolist()}")
+    return grid, starts, goals
+
+
+def finish(native, grid: np.ndarray, starts: np.ndarray, goals: np.ndarray, t0: float) -> PlanResult:
+    """PlanResult from a native result; a solved plan is validated first (a bug raises here)."""
+    positions = makespan = None
+    if native.status == "solved":
+        w = grid.shape[1]
+        cells = native.cells.astype(np.int64)
+        positions = np.stack((cells // w, cells % w), axis=-1)
+        validate_solution(grid, starts, goals, positions, success=True)
+        makespan = positions.shape[0] - 1
+    return PlanResult(native.status, positions, native.sum_of_costs, makespan, time.perf_counter() - t0,
+                      native.expansions, native.message)
+
+
+def plan_actions(positions: np.ndarray) -> np.ndarray:
+    """(T, N) actions 0..4 that move a plan's agents from step t to t+1 (ValueError on a jump)."""
+    pos = np.asarray(positions, dtype=np.int64)
+    delta = pos[1:] - pos[:-1]  # (T, N, 2)
+    match = np.all(delta[:, :, None, :] == DELTAS[None, None, :, :], axis=-1)  # (T, N, 5)
+    if not match.any(axis=-1).all():
+        t, i = np.argwhere(~match.any(axis=-1))[0]
+        raise ValueError(f"plan step {t + 1}: agent {i} moves by {delta[t, i].tolist()}, not one 4-neighbour step")
+    return np.argmax(match, axis=-1)

@@ -1,0 +1,48 @@
+"""scripts/train end to end with a tiny budget: run, logs, checkpoint, model file, then a resume."""
+from __future__ import annotations
+
+import csv
+import subprocess
+
+import pytest
+
+from mapf_policy.model_io import load_model
+
+TINY = [
+    "--total-steps", "20", "--map-size", "10", "--max-agents", "2", "--curriculum-start-agents", "2",
+    "--expert", "shortest_path", "--demo-instances", "4", "--demo-shard-size", "2", "--batch-size", "16",
+    "--learning-starts", "10", "--log-every", "5", "--eval-minutes", "0", "--no-progress",
+]
+
+
+def _run(repo_root, tmp_path, *extra):
+    cmd = [str(repo_root / "scripts" / "train"), *TINY, "--runs-dir", str(tmp_path / "runs"),
+           "--cache-dir", str(tmp_path / "cache"), *extra]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+
+
+def _steps(run_dir):
+    with (run_dir / "train.csv").open() as f:
+        return [int(r["step"]) for r in csv.DictReader(f)]
+
+
+@pytest.mark.slow
+def test_train_smoke_then_resume(repo_root, tmp_path):
+    first = _run(repo_root, tmp_path)
+    assert first.returncode == 0, first.stderr[-3000:]
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    assert run_dir.name == "hscl_m10_a1-2_shortest_path_s0"
+    for name in ("config.json", "checkpoint.pt", "last.pt", "train.csv", "training.png", "demos.json"):
+        assert (run_dir / name).is_file(), name
+    assert _steps(run_dir) == [5, 10, 15, 20]
+    net, cfg, meta = load_model(run_dir / "last.pt")
+    assert meta["step"] == 20 and cfg.fov_size == 9
+    assert any((tmp_path / "cache" / "demos").rglob("shard_*.npz"))
+
+    second = _run(repo_root, tmp_path, "--total-steps", "30")  # same run, longer schedule: resumes
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert _steps(run_dir) == [5, 10, 15, 20, 25, 30]
+    assert load_model(run_dir / "last.pt")[2]["step"] == 30
+
+    clash = _run(repo_root, tmp_path, "--lr", "0.5")
+    assert clash.returncode == 2 and "lr" in clash.stderr

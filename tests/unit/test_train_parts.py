@@ -1,0 +1,164 @@
+"""Training building blocks: transitions, replay ring, demonstration shards, actor episodes, schedules, configs."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from mapf_world.env import MapfEnv
+from mapf_world.instances import generate_instance
+from mapf_policy.config import TrainConfig
+from mapf_policy.network import QNetwork
+from mapf_policy.train.__main__ import resolve_config
+from mapf_policy.train.actor import epsilon_at, evaluate, run_episode, team_cap_at
+from mapf_policy.train.demos import demo_episode, ensure_demos, load_demos
+from mapf_policy.train.expert import ShortestPathExpert, plan_actions
+from mapf_policy.train.learner import Learner
+from mapf_policy.train.replay import EpisodeRecorder, ReplayBuffer, to_tensors
+
+SMALL = dict(map_size=10, max_agents=3, curriculum_start_agents=2, expert="shortest_path", demo_instances=3,
+             demo_shard_size=2, eval_sizes=(2,), eval_instances=1, max_episode_steps=30, replay_capacity=1000)
+
+
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    """One thread: on the shared 2-core machine more threads only contend (10x slower under load)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def _env(seed=0, n=3, size=10):
+    inst = generate_instance(seed, size=size, density=0.2, n_agents=n)
+    return MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=40)
+
+
+def test_recorder_stores_compact_transitions_consistent_with_the_env():
+    env = _env()
+    obs, _ = env.reset()
+    rec = EpisodeRecorder()
+    acts = np.array([1, 2, 0])
+    nxt, rew, term, _, _ = env.step(acts)
+    rec.add(obs, acts, rew, nxt, term, expert=np.array([0, 4, 3]))
+    arr = rec.arrays()
+    assert arr["fov"].dtype == np.uint8 and arr["fov"].shape == (3, 6, 9, 9)
+    assert np.array_equal(arr["fov"], obs["fov"]) and np.array_equal(arr["next_fov"], nxt["fov"])
+    assert arr["expert"].tolist() == [0, 4, 3] and arr["action"].tolist() == [1, 2, 0]
+    t = to_tensors(arr, torch.device("cpu"))
+    assert torch.equal(t["next_last_action"], torch.from_numpy(nxt["last_action"]))
+    assert torch.equal(t["last_action"], torch.from_numpy(obs["last_action"]))
+    bad = dict(obs, fov=obs["fov"] * 0.5)
+    with pytest.raises(ValueError, match="0/1"):
+        rec.add(bad, acts, rew, nxt, term)
+
+
+def test_replay_ring_overwrites_oldest_and_checks_fields():
+    env = _env()
+    obs, _ = env.reset()
+    rec = EpisodeRecorder()
+    for _ in range(4):
+        acts = np.zeros(3, dtype=np.int64)
+        nxt, rew, term, _, _ = env.step(acts)
+        rec.add(obs, acts, rew, nxt, term)
+        obs = nxt
+    buf = ReplayBuffer(5, 9)
+    buf.add(rec.arrays())  # 12 transitions into 5 slots
+    assert len(buf) == 5 and buf.added == 12
+    assert sorted(buf.data["reward"].tolist()) == sorted(rec.arrays()["reward"][-5:].tolist())
+    buf.add({k: v[:2] for k, v in rec.arrays().items()})  # wraps around: the cursor moves on
+    assert buf.cursor == 2 and buf.added == 14
+    batch = buf.sample(7, np.random.default_rng(0))
+    assert batch["fov"].shape == (7, 6, 9, 9)
+    with pytest.raises(ValueError, match="lacks"):
+        buf.add({"action": np.zeros(2)})
+
+
+def test_plan_actions_and_shortest_path_expert():
+    plan = np.array([[[0, 0], [2, 2]], [[1, 0], [2, 3]], [[1, 0], [2, 2]]])
+    assert plan_actions(plan).tolist() == [[2, 4], [0, 3]]
+    with pytest.raises(ValueError, match="not a unit move"):
+        plan_actions(np.array([[[0, 0]], [[2, 0]]]))
+    env = _env(n=1)
+    env.reset()
+    expert = ShortestPathExpert(env.grid, env.goals, env.dist)
+    a = expert.actions(env.positions)[0]
+    d = env.dist[0]
+    r, c = env.positions[0]
+    step = {1: (-1, 0), 2: (1, 0), 3: (0, -1), 4: (0, 1)}[a]
+    assert d[r + step[0], c + step[1]] == d[r, c] - 1
+
+
+def test_demo_shards_are_cached_and_resumable(tmp_path):
+    cfg = TrainConfig(cache_dir=str(tmp_path / "cache"), **SMALL)
+    paths = ensure_demos(cfg, tmp_path, progress=False)
+    assert len(paths) == 2 and all(p.is_file() for p in paths)
+    stamp = paths[0].stat().st_mtime_ns
+    paths[1].unlink()  # an interrupted generation: only the missing shard is redone
+    ensure_demos(cfg, tmp_path, progress=False)
+    assert paths[0].stat().st_mtime_ns == stamp and paths[1].is_file()
+    demos, stats = load_demos(paths, 10_000, 9)
+    assert stats["instances"] == 3 and demos is not None
+    assert (demos["expert"] == demos["action"]).all()  # demonstrations carry a* = a
+    arrays, reason = demo_episode(cfg, 0)
+    assert reason == "ok" or reason.startswith("expert_")
+    small, _ = load_demos(paths, 10, 9)
+    assert len(small["action"]) <= 10
+
+
+def test_actor_episode_relabels_and_evaluation_reports_per_size():
+    torch.manual_seed(0)
+    net = QNetwork().eval()
+    env = _env(n=2)
+    expert = ShortestPathExpert(env.grid, env.goals, env.dist)
+    rec, stats = run_episode(net, env, 0.5, np.random.default_rng(0), expert, oracle_budget=10.0)
+    arr = rec.arrays()
+    assert len(arr["action"]) == 2 * stats["steps"] if not stats["success"] else len(arr["action"]) % 2 == 0
+    assert (arr["expert"] >= 0).all() and stats["labelled"] == len(arr["action"])
+    cfg = TrainConfig(**SMALL)
+    result = evaluate(net, cfg, [generate_instance(1, size=10, density=0.2, n_agents=2)])
+    assert 1 <= result["sizes"]["2"]["average_step"] <= 30
+    assert set(result["sizes"]) == {"2"} and 0.0 <= result["sizes"]["2"]["success_rate"] <= 1.0
+
+
+def test_schedules():
+    cfg = TrainConfig(eps_start=0.3, eps_end=0.1, eps_decay_steps=100, curriculum_start_agents=8,
+                      max_agents=64, curriculum_steps=100)
+    assert epsilon_at(cfg, 0) == pytest.approx(0.3) and epsilon_at(cfg, 50) == pytest.approx(0.2)
+    assert epsilon_at(cfg, 1000) == pytest.approx(0.1)
+    assert team_cap_at(cfg, 0) == 8 and team_cap_at(cfg, 50) == 36 and team_cap_at(cfg, 500) == 64
+
+
+def test_learner_update_and_checkpoint_round_trip(tmp_path):
+    cfg = TrainConfig(batch_size=8, learning_starts=1, **SMALL)
+    env = _env(n=2)
+    rec, _ = run_episode(QNetwork().eval(), env, 1.0, np.random.default_rng(0))
+    learner = Learner(cfg, tmp_path, rec.arrays())
+    for _ in range(3):
+        out = learner.update()
+    assert np.isfinite(out["loss"]) and learner.step == 3
+    learner.save_checkpoint()
+    other = Learner(cfg, tmp_path, rec.arrays())
+    other.load_checkpoint(tmp_path / "checkpoint.pt")
+    assert other.step == 3
+    for k, v in learner.net.state_dict().items():
+        assert torch.equal(v, other.net.state_dict()[k])
+    assert other.rng.bit_generator.state == learner.rng.bit_generator.state
+
+
+def test_configs_validate_and_existing_runs_refuse_other_settings(tmp_path):
+    with pytest.raises(ValueError, match="tau_h"):
+        TrainConfig(tau_h=0.3).validate()
+    with pytest.raises(ValueError, match="variant"):
+        TrainConfig(variant="bogus").validate()
+    cfg, run_dir = resolve_config({"runs_dir": str(tmp_path), "lr": 1e-3}, tmp_path, resume=False)
+    run_dir.mkdir(parents=True)
+    (run_dir / "config.json").write_text(json.dumps(cfg.asdict()))
+    same, _ = resolve_config({"runs_dir": str(tmp_path), "lr": 1e-3, "total_steps": 7}, tmp_path, resume=True)
+    assert same.total_steps == 7 and same.lr == 1e-3
+    with pytest.raises(ValueError, match="lr"):
+        resolve_config({"runs_dir": str(tmp_path), "lr": 5e-4}, tmp_path, resume=False)
+    with pytest.raises(ValueError, match="no run"):
+        resolve_config({"runs_dir": str(tmp_path / "elsewhere")}, tmp_path, resume=True)
