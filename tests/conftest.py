@@ -8,8 +8,6 @@ import pytest
 
 from mapf_world.grid import grid_from_text
 
-# Tests import this name (`from conftest import parse_map`): '.' free, '#' obstacle, spaces ignored.
-parse_map = grid_from_text
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 FIXTURES = REPO_ROOT / "tests" / "fixtures"

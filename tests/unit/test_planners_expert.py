@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import parse_map
+from mapf_world.grid import grid_from_text as parse_map
 
 from mapf_world.env import MapfEnv
 from mapf_world.grid import LEFT, RIGHT, STAY

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import parse_map
+from mapf_world.grid import grid_from_text as parse_map
 from test_planners_oracle import optimal_sum_of_costs, plan_sum_of_costs, tiny_cases
 
 from mapf_world.evaluate import run_case

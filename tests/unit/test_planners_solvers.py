@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import parse_map
+from mapf_world.grid import grid_from_text as parse_map
 
 from mapf_world.env import MapfEnv
 from mapf_world.evaluate import evaluate_file, run_case
