@@ -129,6 +129,8 @@ class TrainConfig:
     """Wall-clock minutes between checkpoints (model, target, optimizer, counters, RNG states)."""
     log_every: int = 100
     """Learner steps between CSV log rows."""
+    init_model: str = ""
+    """Model file whose weights start a new run (fine-tuning); empty: random init. Unused on resume."""
     # --- network and losses ---
     variant: str = "hscl"
     """Architecture: 'hscl' (full) or an ablation ('hscl_no_self_attention', ...)."""

@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from mapf_policy.config import TrainConfig
 from mapf_policy.losses import combined_loss, dqn_loss, expert_agreement, hscl_loss
-from mapf_policy.model_io import model_payload, network_from_payload, save_model
+from mapf_policy.model_io import load_model, model_payload, network_from_payload, save_model
 from mapf_policy.network import QNetwork
 from mapf_policy.train.actor import actor_main, epsilon_at, team_cap_at
 from mapf_policy.train.demos import ensure_demos, load_demos
@@ -95,6 +95,14 @@ class Learner:
         self.elapsed = float(ck["elapsed"])
         torch.set_rng_state(ck["rng"]["torch"])
         self.rng.bit_generator.state = ck["rng"]["numpy"]
+
+    def init_from(self, path: Path) -> None:
+        """Start from a model file's weights (online and target network); its architecture must match."""
+        net, ncfg, _ = load_model(path)
+        if ncfg != self.ncfg:
+            raise ValueError(f"init_model {path} has network {ncfg}, this run needs {self.ncfg}")
+        self.net.load_state_dict(net.state_dict())
+        self.target.load_state_dict(net.state_dict())
 
     # --- one gradient step --------------------------------------------------------------------------
     def sample(self) -> dict:
@@ -168,6 +176,8 @@ def train(cfg: TrainConfig, run_dir: Path, root: Path, progress: bool = True) ->
         learner.load_checkpoint(run_dir / "checkpoint.pt")
         _truncate_log(run_dir / "train.csv", learner.step)
         _truncate_log(run_dir / "eval.csv", learner.step)
+    elif cfg.init_model:
+        learner.init_from(Path(cfg.init_model))
     train_log, eval_log = CsvLog(run_dir / "train.csv", TRAIN_COLUMNS), CsvLog(run_dir / "eval.csv", EVAL_COLUMNS)
 
     ctx = mp.get_context("spawn")
