@@ -12,6 +12,7 @@ TINY = [
     "--total-steps", "20", "--map-size", "10", "--max-agents", "2", "--curriculum-start-agents", "2",
     "--expert", "shortest_path", "--demo-instances", "4", "--demo-shard-size", "2", "--batch-size", "16",
     "--learning-starts", "10", "--log-every", "5", "--eval-minutes", "0", "--no-progress",
+    "--weights-sync-every", "5",  # unconsumed weights at exit must not hang the process
 ]
 
 

@@ -102,6 +102,8 @@ def test_demo_shards_are_cached_and_resumable(tmp_path):
     demos, stats = load_demos(paths, 10_000, 9)
     assert stats["instances"] == 3 and demos is not None
     assert (demos["expert"] == demos["action"]).all()  # demonstrations carry a* = a
+    with pytest.raises(ValueError, match="demo_shard_size"):
+        ensure_demos(TrainConfig(cache_dir=str(tmp_path / "cache"), **dict(SMALL, demo_shard_size=3)), tmp_path)
     arrays, reason = demo_episode(cfg, 0)
     assert reason == "ok" or reason.startswith("expert_")
     small, _ = load_demos(paths, 10, 9)

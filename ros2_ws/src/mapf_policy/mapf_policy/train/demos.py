@@ -108,9 +108,22 @@ def n_shards(cfg: TrainConfig) -> int:
     return -(-cfg.demo_instances // cfg.demo_shard_size)
 
 
+def check_manifest(cfg: TrainConfig, out: Path) -> None:
+    """The shard size fixes which instances a shard holds; a cache made with another one is refused."""
+    out.mkdir(parents=True, exist_ok=True)
+    manifest = out / "manifest.json"
+    if not manifest.is_file():
+        manifest.write_text(json.dumps({"demo_shard_size": cfg.demo_shard_size}))
+    made_with = json.loads(manifest.read_text())["demo_shard_size"]
+    if made_with != cfg.demo_shard_size:
+        raise ValueError(f"demo cache {out} was made with demo_shard_size {made_with}, this run asks for "
+                         f"{cfg.demo_shard_size}; use the same value or another cache_dir")
+
+
 def ensure_demos(cfg: TrainConfig, root: Path, progress: bool = True) -> list[Path]:
     """Generate the shards that are missing (resumable); returns all shard paths."""
     out = demo_dir(cfg, root)
+    check_manifest(cfg, out)
     paths = [out / f"shard_{k:05d}.npz" for k in range(n_shards(cfg))]
     missing = [k for k, p in enumerate(paths) if not p.is_file()]
     if missing:

@@ -241,6 +241,11 @@ def train(cfg: TrainConfig, run_dir: Path, root: Path, progress: bool = True) ->
         if actor.is_alive():
             actor.terminate()
             actor.join()
+        # Weights the actor never picked up sit in a queue feeder thread blocked on a full pipe;
+        # without this the interpreter would wait for it forever at exit.
+        for q in (weights_q, data_q):
+            q.cancel_join_thread()
+            q.close()
     return learner
 
 
