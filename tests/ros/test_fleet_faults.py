@@ -78,6 +78,9 @@ def test_killed_policy_node_stays_others_go_on_restarted_it_rejoins(tmp_path, do
     topics = {m.channel.topic for m in read_ros2_messages(str(fleet.mcap))}
     assert {"/fleet/status", "/robot_1/observation", "/robot_0/odom"} <= topics
     # The interrupted world wrote its summary saying so.
+    # (The world can finish on its own between the poll above and the SIGTERM: then its summary is a
+    # success, which is also a correct record.)
     if world_alive:
         s = json.loads(fleet.summary.read_text())
-        assert s["state"] == "aborted" and "interrupted" in s["detail"]
+        interrupted = s["state"] == "aborted" and "interrupted" in s["detail"]
+        assert interrupted or s["state"] == "success", s

@@ -13,7 +13,6 @@ motion as one at 1, only sooner. The kinematics are in drive.py (pure).
 from __future__ import annotations
 
 import math
-import sys
 import time
 from collections import deque
 
@@ -21,8 +20,6 @@ import rclpy
 from geometry_msgs.msg import PoseWithCovarianceStamped, Twist
 from mapf_msgs.msg import CellMove
 from nav_msgs.msg import Odometry
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
@@ -30,6 +27,7 @@ from rclpy.time import Time
 from mapf_policy.drive import (DriveLimits, Pose2D, cell_to_xy, integrate, plan_cell_move,
                                quaternion_from_yaw, xy_to_cell, yaw_from_quaternion)
 from mapf_world.fleet_core import resolve_robot_id
+from mapf_world.node_main import run_node
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -137,31 +135,7 @@ class DriveExecutor(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    try:
-        node = DriveExecutor()
-    except (ValueError, OSError, ParameterException) as exc:
-        print(f"[drive_executor] refusing to start: {exc}", file=sys.stderr, flush=True)
-        rclpy.try_shutdown()
-        raise SystemExit(2)
-    except KeyboardInterrupt:  # SIGINT while starting up
-        rclpy.try_shutdown()
-        return
-    except Exception:
-        if rclpy.ok():
-            raise
-        return  # SIGINT/SIGTERM shut the context down while the node was being created
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception:
-        if rclpy.ok():
-            raise
-        # else: a signal shut the context down while a callback ran (an rclpy race): a clean stop
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    run_node("drive_executor", DriveExecutor, args)
 
 
 if __name__ == "__main__":

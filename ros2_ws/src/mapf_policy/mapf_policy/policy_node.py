@@ -8,18 +8,16 @@ It refuses to start (exit 2) when the model file is missing or does not hold a c
 from __future__ import annotations
 
 import os
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import rclpy
 from mapf_msgs.msg import AgentAction, AgentObservation
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
 from mapf_world.fleet_core import resolve_robot_id
+from mapf_world.node_main import run_node
 
 DEFAULT_MODEL = "models/hscl.pt"
 
@@ -95,31 +93,7 @@ class PolicyNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    try:
-        node = PolicyNode()
-    except (ValueError, FileNotFoundError, ParameterException) as exc:
-        print(f"[policy_node] refusing to start: {exc}", file=sys.stderr, flush=True)
-        rclpy.try_shutdown()
-        raise SystemExit(2)
-    except KeyboardInterrupt:  # SIGINT while starting up (e.g. loading the model)
-        rclpy.try_shutdown()
-        return
-    except Exception:
-        if rclpy.ok():
-            raise
-        return  # SIGINT/SIGTERM shut the context down while the node was being created
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception:
-        if rclpy.ok():
-            raise
-        # else: a signal shut the context down while a callback ran (an rclpy race): a clean stop
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    run_node("policy_node", PolicyNode, args)
 
 
 if __name__ == "__main__":

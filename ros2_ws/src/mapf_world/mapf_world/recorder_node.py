@@ -14,12 +14,11 @@ import time
 from pathlib import Path
 
 import rclpy
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from mapf_world.mcap_log import McapRos2Writer
+from mapf_world.node_main import run_node
 
 
 def message_class(type_name: str):
@@ -118,32 +117,7 @@ class Recorder(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    try:
-        node = Recorder()
-    except (ValueError, OSError, ParameterException) as exc:
-        print(f"[recorder] refusing to start: {exc}", file=sys.stderr, flush=True)
-        rclpy.try_shutdown()
-        raise SystemExit(2)
-    except KeyboardInterrupt:  # SIGINT while starting up
-        rclpy.try_shutdown()
-        return
-    except Exception:
-        if rclpy.ok():
-            raise
-        return  # SIGINT/SIGTERM shut the context down while the node was being created
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception:
-        if rclpy.ok():
-            raise
-        # else: a signal shut the context down while a callback ran (an rclpy race): a clean stop
-    finally:
-        node.close()
-        node.destroy_node()
-        rclpy.try_shutdown()
+    run_node("recorder", Recorder, args, close_method="close")
 
 
 if __name__ == "__main__":

@@ -24,7 +24,6 @@ import rclpy
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from mapf_msgs.msg import AgentAction, AgentObservation, CellMove, FleetStatus
 from nav_msgs.msg import OccupancyGrid, Odometry
-from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -33,6 +32,7 @@ from visualization_msgs.msg import MarkerArray
 from mapf_world import fleet_msgs
 from mapf_world.fleet_core import (INSTANCE_SOURCES, FleetCore, Phase, State, common_drive_start, describe_moves,
                                    load_fleet_instance, pose_error)
+from mapf_world.node_main import create_node
 from mapf_world.observation import ObservationBuilder
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -327,19 +327,9 @@ class WorldNode(Node):
 
 def main(args=None):
     rclpy.init(args=args)
-    try:
-        node = WorldNode()
-    except (ValueError, FileNotFoundError, ParameterException) as exc:
-        print(f"[world_node] refusing to start: {exc}", file=sys.stderr, flush=True)
-        rclpy.try_shutdown()
-        raise SystemExit(2)
-    except KeyboardInterrupt:  # SIGINT while starting up
-        rclpy.try_shutdown()
+    node = create_node("world_node", WorldNode)
+    if node is None:
         return
-    except Exception:
-        if rclpy.ok():
-            raise
-        return  # SIGINT/SIGTERM shut the context down while the node was being created
     code = 0
     try:
         while rclpy.ok() and not node.finished:

@@ -1,0 +1,60 @@
+"""The Jazzy start-up and shutdown idiom shared by every node's main().
+
+Start-up: bad parameters or files make the node refuse to start with one clear line and exit
+code 2; SIGINT/SIGTERM while the node is being created is a clean stop. Spinning: SIGINT/SIGTERM
+(KeyboardInterrupt, ExternalShutdownException) end it cleanly; `close` runs before the node is
+destroyed (the recorder finalises its MCAP file there).
+"""
+from __future__ import annotations
+
+import sys
+from typing import Callable, Optional, Tuple, Type
+
+import rclpy
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+
+REFUSALS: Tuple[Type[BaseException], ...] = (ValueError, OSError, ParameterException)
+
+
+def create_node(name: str, factory: Callable[[], Node]) -> Optional[Node]:
+    """Create the node; None when a signal stopped the start-up. Refusals exit with code 2."""
+    try:
+        return factory()
+    except REFUSALS as exc:
+        print(f"[{name}] refusing to start: {exc}", file=sys.stderr, flush=True)
+        rclpy.try_shutdown()
+        raise SystemExit(2)
+    except KeyboardInterrupt:  # SIGINT while starting up (e.g. loading the model)
+        rclpy.try_shutdown()
+        return None
+    except Exception:
+        if rclpy.ok():
+            raise
+        return None  # SIGINT/SIGTERM shut the context down while the node was being created
+
+
+def spin_until_shutdown(node: Node, close: Optional[Callable[[], None]] = None) -> None:
+    """Spin until a signal, then close (optional), destroy the node and shut rclpy down."""
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception:
+        if rclpy.ok():
+            raise
+        # else: a signal shut the context down while a callback ran (an rclpy race): a clean stop
+    finally:
+        if close is not None:
+            close()
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+def run_node(name: str, factory: Callable[[], Node], args=None, close_method: str = "") -> None:
+    """main() of a spinning node: init, create (or refuse), spin, shut down."""
+    rclpy.init(args=args)
+    node = create_node(name, factory)
+    if node is not None:
+        spin_until_shutdown(node, getattr(node, close_method) if close_method else None)
