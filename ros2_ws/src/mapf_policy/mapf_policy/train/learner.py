@@ -27,7 +27,7 @@ from mapf_policy.model_io import load_model, model_payload, network_from_payload
 from mapf_policy.network import QNetwork
 from mapf_policy.train.actor import actor_main, epsilon_at, team_cap_at
 from mapf_policy.train.demos import ensure_demos, load_demos
-from mapf_policy.train.log import EVAL_COLUMNS, TRAIN_COLUMNS, CsvLog, plot_run
+from mapf_policy.train.log import EVAL_COLUMNS, TRAIN_COLUMNS, CsvLog, plot_run, truncate_log
 from mapf_policy.train.replay import ReplayBuffer, concat, to_tensors
 
 CHECKPOINT_FORMAT, CHECKPOINT_VERSION = "mapf_policy.checkpoint", 1
@@ -151,13 +151,9 @@ def _publish(weights_q, item) -> None:
     weights_q.put(item)
 
 
-def _truncate_log(path: Path, step: int) -> None:
-    """Drop rows logged after the checkpoint we resume from, so the CSV has no duplicate steps."""
-    if not path.is_file():
-        return
-    lines = path.read_text().splitlines(keepends=True)
-    kept = lines[:1] + [ln for ln in lines[1:] if int(float(ln.split(",", 1)[0])) <= step]
-    path.write_text("".join(kept))
+def _raise_interrupt(signum, frame):
+    """SIGTERM (kill, a scheduler's stop) ends the run like Ctrl-C: checkpoint, then exit."""
+    raise KeyboardInterrupt
 
 
 def train(cfg: TrainConfig, run_dir: Path, root: Path, progress: bool = True) -> Learner:
@@ -174,8 +170,8 @@ def train(cfg: TrainConfig, run_dir: Path, root: Path, progress: bool = True) ->
     del demos
     if (run_dir / "checkpoint.pt").is_file():
         learner.load_checkpoint(run_dir / "checkpoint.pt")
-        _truncate_log(run_dir / "train.csv", learner.step)
-        _truncate_log(run_dir / "eval.csv", learner.step)
+        truncate_log(run_dir / "train.csv", learner.step)
+        truncate_log(run_dir / "eval.csv", learner.step)
     elif cfg.init_model:
         learner.init_from(Path(cfg.init_model))
     train_log, eval_log = CsvLog(run_dir / "train.csv", TRAIN_COLUMNS), CsvLog(run_dir / "eval.csv", EVAL_COLUMNS)
@@ -187,7 +183,7 @@ def train(cfg: TrainConfig, run_dir: Path, root: Path, progress: bool = True) ->
     actor = ctx.Process(target=actor_main, name="mapf-actor", daemon=True,
                         args=(cfg.asdict(), str(run_dir), learner.episode, weights_q, data_q, learner_step, stop))
     actor.start()
-    previous_sigterm = signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
+    previous_sigterm = signal.signal(signal.SIGTERM, _raise_interrupt)
 
     recent = collections.deque(maxlen=100)
     window = {"losses": [], "env": 0, "t": time.monotonic(), "steps": 0}

@@ -35,6 +35,15 @@ class CsvLog:
             csv.writer(f).writerow([_fmt(row[c]) for c in self.columns])
 
 
+def truncate_log(path: Path, step: int) -> None:
+    """Drop rows logged after the checkpoint a run resumes from, so the CSV has no duplicate steps."""
+    if not Path(path).is_file():
+        return
+    lines = Path(path).read_text().splitlines(keepends=True)
+    kept = lines[:1] + [ln for ln in lines[1:] if int(float(ln.split(",", 1)[0])) <= step]
+    Path(path).write_text("".join(kept))
+
+
 def _fmt(v) -> str:
     if isinstance(v, float):
         return "" if np.isnan(v) else f"{v:.6g}"
