@@ -27,7 +27,7 @@ from mapf_policy.config import TrainConfig
 from mapf_policy.train.expert import ExpertFailed, plan_actions, solve
 from mapf_policy.train.replay import EpisodeRecorder, concat, field_specs
 
-DEMO_STREAM, ACTOR_STREAM, VALID_STREAM = 1, 2, 3
+DEMO_STREAM, ACTOR_STREAM, VALID_STREAM, COMPARE_STREAM = 1, 2, 3, 4
 
 
 def instance_rng(seed: int, stream: int, index: int) -> np.random.Generator:

@@ -1,0 +1,96 @@
+"""Compare model files on generated held-out cases (never benchmark cases): `scripts/compare_models`.
+
+For ablations and snapshot choice. Every model meets the same cases: seed stream COMPARE_STREAM,
+apart from the demonstration, actor and validation streams, so no model trained on them. Greedy
+actions, the benchmark's rules and step limit; average step counts the limit for a failed case.
+  scripts/compare_models models/hscl.pt runs/*/last.pt --sizes 4 8 16 --cases 25 --json out.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from mapf_world.env import MapfEnv
+from mapf_world.instances import generate_instance
+from mapf_policy.model_io import load_model
+from mapf_policy.train.actor import run_episode
+from mapf_policy.train.demos import COMPARE_STREAM, instance_rng
+
+
+def held_out_cases(sizes, cases: int, seed: int, map_size: int, density: float) -> list:
+    return [generate_instance(instance_rng(seed, COMPARE_STREAM, n * 100_000 + k), size=map_size, density=density,
+                              n_agents=n) for n in sizes for k in range(cases)]
+
+
+def compare(paths, sizes, cases: int, seed: int = 0, map_size: int = 40, density: float = 0.3,
+            max_steps: int = 256, progress: bool = True) -> dict:
+    """{model path: {team size: {success_rate, average_step, successes}}}."""
+    instances = held_out_cases(sizes, cases, seed, map_size, density)
+    out = {}
+    for path in paths:
+        net, ncfg, _ = load_model(path)  # raises a clear error for a missing, corrupt or foreign file
+        net = net.to(memory_format=torch.channels_last).eval()
+        runs: dict[int, list] = {}
+        for inst in tqdm(instances, desc=Path(path).parent.name + "/" + Path(path).name, disable=not progress,
+                         unit="case"):
+            env = MapfEnv(inst.grid, inst.starts, inst.goals, fov_size=ncfg.fov_size, max_steps=max_steps)
+            _, stats = run_episode(net, env, 0.0, np.random.default_rng(0), record=False)
+            runs.setdefault(inst.n_agents, []).append(stats)
+        out[str(path)] = {str(n): {"success_rate": float(np.mean([r["success"] for r in rs])),
+                                   "average_step": float(np.mean([r["steps"] for r in rs])),
+                                   "successes": int(sum(r["success"] for r in rs)), "cases": len(rs)}
+                          for n, rs in sorted(runs.items())}
+    return out
+
+
+def markdown(results: dict, sizes) -> str:
+    head = "| model | " + " | ".join(f"{n} agents: success, avg step" for n in sizes) + " |"
+    rows = [head, "|" + "---|" * (len(sizes) + 1)]
+    for path, by_size in results.items():
+        cells = [f"{v['successes']}/{v['cases']}, {v['average_step']:.1f}" for v in (by_size[str(n)] for n in sizes)]
+        rows.append(f"| {path} | " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="scripts/compare_models", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("models", nargs="+", help="model files (models/hscl.pt, runs/<run>/last.pt, ...)")
+    p.add_argument("--sizes", type=int, nargs="+", default=[4, 8, 16], help="team sizes (default 4 8 16)")
+    p.add_argument("--cases", type=int, default=25, help="cases per team size (default 25)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the held-out cases (default 0)")
+    p.add_argument("--map-size", type=int, default=40)
+    p.add_argument("--density", type=float, default=0.3)
+    p.add_argument("--max-steps", type=int, default=256)
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    p.add_argument("--json", type=Path, help="also write the results here")
+    p.add_argument("--no-progress", action="store_true")
+    args = p.parse_args(argv)
+    bad = [n for n in args.sizes if n < 1] + ([args.cases] if args.cases < 1 else [])
+    if bad:
+        p.error(f"--sizes and --cases must be positive, got {bad}")
+    missing = [m for m in args.models if not Path(m).is_file()]
+    if missing:
+        p.error(f"no such model file: {', '.join(missing)}")
+    torch.set_num_threads(args.threads)
+    try:
+        results = compare(args.models, args.sizes, args.cases, args.seed, args.map_size, args.density,
+                          args.max_steps, progress=not args.no_progress)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(markdown(results, args.sizes))
+    if args.json:
+        args.json.write_text(json.dumps({"sizes": args.sizes, "cases": args.cases, "seed": args.seed,
+                                         "results": results}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
