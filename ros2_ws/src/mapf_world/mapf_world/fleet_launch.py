@@ -101,6 +101,16 @@ def read_usage(pid: int) -> Optional[Usage]:
     return Usage(cpu, mem.get("VmRSS", 0.0), mem.get("VmHWM", 0.0))
 
 
+def _default_sigint() -> None:
+    """Child side of Popen: SIGINT back to its default action.
+
+    A shell starts background jobs (`scripts/demo &`, nohup) with SIGINT ignored, and children inherit
+    that; Python then installs no KeyboardInterrupt handler, so stop()'s SIGINT would do nothing and the
+    nodes would only end on the SIGTERM escalation. Restoring it keeps the graceful first step.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class ProcessGroup:
     """Named node processes with one log file each; stop() is SIGINT first, then escalates."""
 
@@ -117,7 +127,8 @@ class ProcessGroup:
         log = open(self.log_dir / f"{name}.log", "ab")
         log.write((" ".join(cmd) + "\n").encode())
         log.flush()
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, stdin=subprocess.DEVNULL)
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, stdin=subprocess.DEVNULL,
+                                preexec_fn=_default_sigint)
         self.procs[name] = proc
         self._logs[name] = log
         return proc
