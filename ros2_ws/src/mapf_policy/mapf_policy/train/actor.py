@@ -18,13 +18,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from mapf_world.env import MapfEnv
 from mapf_world.instances import generate_instance
 from mapf_policy.config import TrainConfig
 from mapf_policy.model_io import save_model
 from mapf_policy.network import QNetwork
-from mapf_policy.train.demos import ACTOR_STREAM, VALID_STREAM, instance_rng
+from mapf_policy.train.demos import ACTOR_STREAM, VALID_STREAM, generated_cases, instance_rng
 from mapf_policy.train.expert import ExpertFailed, make_oracle
 from mapf_policy.train.replay import EpisodeRecorder
 
@@ -81,23 +82,26 @@ def run_episode(net: QNetwork, env: MapfEnv, epsilon: float, rng: np.random.Gene
 
 def validation_instances(cfg: TrainConfig) -> list:
     """Fixed generated validation cases (own seed stream; never benchmark cases)."""
-    out = []
-    for n in cfg.eval_sizes:
-        for k in range(cfg.eval_instances):
-            rng = instance_rng(cfg.seed, VALID_STREAM, int(n) * 100_000 + k)
-            out.append(generate_instance(rng, size=cfg.map_size, density=cfg.density, n_agents=int(n)))
-    return out
+    return generated_cases(cfg.seed, VALID_STREAM, cfg.eval_sizes, cfg.eval_instances, cfg.map_size, cfg.density)
+
+
+def evaluate_by_size(net: QNetwork, instances: list, fov_size: int, max_steps: int, progress: bool = False,
+                     desc: str = "") -> dict:
+    """Greedy runs: {team size (str): success_rate, average_step (a failure counts max_steps), successes, cases}."""
+    by_size: dict[int, list] = {}
+    for inst in tqdm(instances, desc=desc, unit="case", disable=not progress):
+        env = MapfEnv(inst.grid, inst.starts, inst.goals, fov_size=fov_size, max_steps=max_steps)
+        _, stats = run_episode(net, env, 0.0, np.random.default_rng(0), record=False)
+        by_size.setdefault(inst.n_agents, []).append(stats)
+    return {str(n): {"success_rate": float(np.mean([r["success"] for r in runs])),
+                     "average_step": float(np.mean([r["steps"] for r in runs])),
+                     "successes": int(sum(r["success"] for r in runs)), "cases": len(runs)}
+            for n, runs in sorted(by_size.items())}
 
 
 def evaluate(net: QNetwork, cfg: TrainConfig, instances: list) -> dict:
-    """Greedy success rate and average step (failures count max steps) per team size."""
-    by_size: dict[int, list] = {}
-    for inst in instances:
-        env = MapfEnv(inst.grid, inst.starts, inst.goals, fov_size=cfg.fov_size, max_steps=cfg.max_episode_steps)
-        _, stats = run_episode(net, env, 0.0, np.random.default_rng(0), record=False)
-        by_size.setdefault(inst.n_agents, []).append(stats)
-    sizes = {str(n): {"success_rate": float(np.mean([r["success"] for r in runs])),
-                      "average_step": float(np.mean([r["steps"] for r in runs]))} for n, runs in sorted(by_size.items())}
+    """Greedy success rate and average step per team size, and one score to pick the best snapshot."""
+    sizes = evaluate_by_size(net, instances, cfg.fov_size, cfg.max_episode_steps)
     # Success first; the average step breaks ties (1e-4 per step never outweighs one more success).
     score = np.mean([v["success_rate"] for v in sizes.values()]) - 1e-4 * np.mean([v["average_step"] for v in sizes.values()])
     return {"sizes": sizes, "score": float(score)}

@@ -12,40 +12,27 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
 import torch
-from tqdm import tqdm
 
-from mapf_world.env import MapfEnv
-from mapf_world.instances import generate_instance
 from mapf_policy.model_io import load_model
-from mapf_policy.train.actor import run_episode
-from mapf_policy.train.demos import COMPARE_STREAM, instance_rng
+from mapf_policy.train.actor import evaluate_by_size
+from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
 
 
 def held_out_cases(sizes, cases: int, seed: int, map_size: int, density: float) -> list:
-    return [generate_instance(instance_rng(seed, COMPARE_STREAM, n * 100_000 + k), size=map_size, density=density,
-                              n_agents=n) for n in sizes for k in range(cases)]
+    return generated_cases(seed, COMPARE_STREAM, sizes, cases, map_size, density)
 
 
 def compare(paths, sizes, cases: int, seed: int = 0, map_size: int = 40, density: float = 0.3,
             max_steps: int = 256, progress: bool = True) -> dict:
-    """{model path: {team size: {success_rate, average_step, successes}}}."""
+    """{model path: {team size: {success_rate, average_step, successes, cases}}}."""
     instances = held_out_cases(sizes, cases, seed, map_size, density)
     out = {}
     for path in paths:
         net, ncfg, _ = load_model(path)  # raises a clear error for a missing, corrupt or foreign file
         net = net.to(memory_format=torch.channels_last).eval()
-        runs: dict[int, list] = {}
-        for inst in tqdm(instances, desc=Path(path).parent.name + "/" + Path(path).name, disable=not progress,
-                         unit="case"):
-            env = MapfEnv(inst.grid, inst.starts, inst.goals, fov_size=ncfg.fov_size, max_steps=max_steps)
-            _, stats = run_episode(net, env, 0.0, np.random.default_rng(0), record=False)
-            runs.setdefault(inst.n_agents, []).append(stats)
-        out[str(path)] = {str(n): {"success_rate": float(np.mean([r["success"] for r in rs])),
-                                   "average_step": float(np.mean([r["steps"] for r in rs])),
-                                   "successes": int(sum(r["success"] for r in rs)), "cases": len(rs)}
-                          for n, rs in sorted(runs.items())}
+        out[str(path)] = evaluate_by_size(net, instances, ncfg.fov_size, max_steps, progress,
+                                          desc=Path(path).parent.name + "/" + Path(path).name)
     return out
 
 

@@ -34,6 +34,12 @@ def instance_rng(seed: int, stream: int, index: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([seed, stream, index]))
 
 
+def generated_cases(seed: int, stream: int, sizes, cases: int, map_size: int, density: float) -> list:
+    """`cases` generated instances per team size in `sizes`, fixed by (seed, stream); never benchmark cases."""
+    return [generate_instance(instance_rng(seed, stream, int(n) * 100_000 + k), size=map_size, density=density,
+                              n_agents=int(n)) for n in sizes for k in range(cases)]
+
+
 def demo_dir(cfg: TrainConfig, root: Path) -> Path:
     key = (f"m{cfg.map_size}_d{cfg.density:g}_a{cfg.min_agents}-{cfg.max_agents}_{cfg.expert}"
            f"_e{cfg.expert_epsilon:g}_t{cfg.expert_time_limit:g}_fov{cfg.fov_size}_s{cfg.seed}")

@@ -17,8 +17,9 @@ import time
 
 import numpy as np
 
+from mapf_world.instances import check_instance
 from mapf_world.planners import native
-from mapf_world.planners.result import PlanResult, check_epsilon, check_problem, check_time_limit, finish
+from mapf_world.planners.result import PlanResult, check_epsilon, check_time_limit, finish
 
 MAX_AGENTS = 64  # agent sets are 64-bit masks in the C++ core
 OBJECTIVES = {"sum_of_costs": native.ODRMSTAR, "free_goal_wait": native.ODRMSTAR_FREE_GOAL_WAIT}
@@ -38,7 +39,7 @@ def plan_odrmstar(grid, starts, goals, epsilon: float = 10.0, time_limit: float 
     epsilon = check_epsilon(epsilon)
     time_limit = check_time_limit(time_limit)
     objective = check_objective(objective)
-    grid, starts, goals = check_problem(grid, starts, goals)
+    grid, starts, goals = check_instance(grid, starts, goals)
     if starts.shape[0] > MAX_AGENTS:
         raise ValueError(f"ODrM* supports at most {MAX_AGENTS} agents, got {starts.shape[0]}")
     result = native.run(OBJECTIVES[objective], grid, starts, goals, epsilon, time_limit, cancel)

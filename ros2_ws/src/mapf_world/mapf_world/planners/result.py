@@ -12,8 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mapf_world.grid import DELTAS, check_cells, check_grid
-from mapf_world.heuristics import connected_components
+from mapf_world.grid import DELTAS
 from mapf_world.validate import validate_solution
 
 STATUSES = ("solved", "unsolvable", "timeout")
@@ -56,21 +55,6 @@ def check_epsilon(epsilon) -> float:
     if not math.isfinite(epsilon) or epsilon < 1:
         raise ValueError(f"epsilon must be a finite number >= 1, got {epsilon!r}")
     return float(epsilon)
-
-
-def check_problem(grid, starts, goals) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """MapfEnv's input checks: valid map, free distinct starts and goals, each goal reachable."""
-    grid = check_grid(grid)
-    starts = check_cells(grid, starts, what="starts")
-    goals = check_cells(grid, goals, what="goals")
-    if starts.shape != goals.shape:
-        raise ValueError(f"{len(starts)} starts but {len(goals)} goals")
-    labels = connected_components(grid)
-    bad = labels[starts[:, 0], starts[:, 1]] != labels[goals[:, 0], goals[:, 1]]
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"agent {i}: goal {goals[i].tolist()} is unreachable from start {starts[i].tolist()}")
-    return grid, starts, goals
 
 
 def finish(native, grid: np.ndarray, starts: np.ndarray, goals: np.ndarray, t0: float) -> PlanResult:
