@@ -47,3 +47,18 @@ def test_train_smoke_then_resume(repo_root, tmp_path):
 
     clash = _run(repo_root, tmp_path, "--lr", "0.5")
     assert clash.returncode == 2 and "lr" in clash.stderr
+
+
+@pytest.mark.slow
+def test_train_two_actors_no_demos_stops_at_session_limit(repo_root, tmp_path):
+    """Several actor processes feed one learner; --session-minutes ends the session with a checkpoint."""
+    run = _run(repo_root, tmp_path, "--actors", "2", "--demo-instances", "0", "--session-minutes", "0.3", "--max-replay-ratio", "4",
+               "--total-steps", "1000000", "--run-name", "two")
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert "session limit of 0.3 min reached" in run.stdout
+    run_dir = tmp_path / "runs" / "two"
+    step = load_model(run_dir / "last.pt")[2]["step"]
+    assert 0 < step < 1_000_000 and _steps(run_dir)[-1] <= step
+    with (run_dir / "train.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert int(rows[-1]["episodes"]) >= 2 and int(rows[-1]["demo_size"]) == 0

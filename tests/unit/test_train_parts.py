@@ -142,9 +142,14 @@ def test_learner_update_and_checkpoint_round_trip(tmp_path):
         out = learner.update()
     assert np.isfinite(out["loss"]) and learner.step == 3
     learner.save_checkpoint()
+    assert learner.online_drawn == 0  # demonstrations only: nothing drawn from the (empty) online replay
+    learner.online.add(rec.arrays())
+    learner.update()
+    assert learner.online_drawn == 8 - round(8 * cfg.demo_fraction)  # counted for the max_replay_ratio cap
     other = Learner(cfg, tmp_path, rec.arrays())
     other.load_checkpoint(tmp_path / "checkpoint.pt")
-    assert other.step == 3
+    assert other.step == 3 and other.online_drawn == 0
+    learner.load_checkpoint(tmp_path / "checkpoint.pt")
     for k, v in learner.net.state_dict().items():
         assert torch.equal(v, other.net.state_dict()[k])
     assert other.rng.bit_generator.state == learner.rng.bit_generator.state
@@ -164,3 +169,15 @@ def test_configs_validate_and_existing_runs_refuse_other_settings(tmp_path):
         resolve_config({"runs_dir": str(tmp_path), "lr": 5e-4}, tmp_path, resume=False)
     with pytest.raises(ValueError, match="no run"):
         resolve_config({"runs_dir": str(tmp_path / "elsewhere")}, tmp_path, resume=True)
+
+
+@pytest.mark.parametrize("start,n_actors", [(0, 1), (0, 3), (7, 3), (5, 4)])
+def test_actors_split_episode_indices_without_overlap(start, n_actors):
+    from mapf_policy.train.actor import first_episode
+
+    played = []
+    for k in range(n_actors):
+        first = first_episode(start, k, n_actors)
+        assert start <= first < start + n_actors and first % n_actors == k % n_actors
+        played += range(first, start + 40, n_actors)
+    assert sorted(played) == list(range(start, start + 40))

@@ -20,7 +20,7 @@ from mapf_policy.config import TrainConfig
 from mapf_policy.solver import repo_root
 
 SCHEDULE_FIELDS = ("total_steps", "checkpoint_minutes", "log_every", "device", "learner_threads", "actor_threads",
-                   "eval_minutes", "data_workers")
+                   "actors", "session_minutes", "max_replay_ratio", "eval_minutes", "data_workers")
 
 
 def field_docs(cls) -> dict:

@@ -1,13 +1,16 @@
 """Actor process: epsilon-greedy episodes in generated worlds, expert relabelling, greedy validation.
 
-Runs in its own process (spawn) beside the learner, so that data generation and learning overlap on
-the two cores: one thread each. All agents of an episode go through the network in one batch.
+Each actor runs in its own process (spawn) beside the learner, so that data generation and learning
+overlap: one thread each (on this 2-core machine one actor; on a many-core GPU machine, one per spare
+core). All agents of an episode go through the network in one batch. Actor k of N plays the episodes
+whose index is k modulo N, so every episode index (and its generated world) is played once.
 Protocol with the learner (multiprocessing queues):
-  weights_q  learner -> actor: {"step", "state_dict" (numpy arrays)}; the actor takes the newest;
-  data_q     actor -> learner: {"kind": "episode", "episode", "transitions", "stats"} or {"kind": "eval", ...};
+  weights_q  learner -> actor (one queue per actor): {"step", "state_dict" (numpy arrays)}; the newest wins;
+  data_q     actors -> learner: {"kind": "episode", "episode", "transitions", "stats"} or {"kind": "eval", ...};
   shared     learner_step (the learner's step, for epsilon and curriculum), stop (an Event).
-The actor waits while it is ahead of the learner by more than the replay ratio allows, which leaves
-the CPU to the learner instead of filling the replay with samples that will never be drawn.
+An actor waits while the actors together are ahead of the learner by more than the replay ratio allows
+(each keeps its 1/N share), which leaves the CPU to the learner instead of filling the replay with
+samples that will never be drawn. Only actor 0 runs the greedy validation.
 """
 from __future__ import annotations
 
@@ -131,8 +134,16 @@ def _load_weights(net: QNetwork, weights_q, current_step: int) -> int:
     return int(latest["step"])
 
 
-def actor_main(cfg_dict: dict, run_dir: str, start_episode: int, weights_q, data_q, learner_step, stop) -> None:
+def first_episode(start_episode: int, actor_index: int, n_actors: int) -> int:
+    """The first episode index >= start_episode that actor `actor_index` of `n_actors` plays."""
+    return start_episode + (actor_index - start_episode) % n_actors
+
+
+def actor_main(cfg_dict: dict, run_dir: str, start_episode: int, weights_q, data_q, learner_step, stop,
+               actor_index: int = 0) -> None:
     cfg = TrainConfig.from_dict(cfg_dict)
+    if not 0 <= actor_index < cfg.actors:
+        raise ValueError(f"actor_index {actor_index} outside 0..{cfg.actors - 1}")
     torch.set_num_threads(cfg.actor_threads)
     run_dir = Path(run_dir)
     net = QNetwork(cfg.network_config()).to(memory_format=torch.channels_last).eval()
@@ -142,14 +153,15 @@ def actor_main(cfg_dict: dict, run_dir: str, start_episode: int, weights_q, data
         weights_step = _load_weights(net, weights_q, -1)
     best_path = run_dir / "best.json"
     best = json.loads(best_path.read_text())["score"] if best_path.is_file() else -np.inf
-    valid = validation_instances(cfg) if cfg.eval_minutes > 0 else []
+    valid = validation_instances(cfg) if cfg.eval_minutes > 0 and actor_index == 0 else []
     last_eval = time.monotonic()
-    episode, produced, first_step = start_episode, 0, learner_step.value
+    episode, produced, first_step = first_episode(start_episode, actor_index, cfg.actors), 0, learner_step.value
     online_share = cfg.batch_size * (1.0 - cfg.demo_fraction)
     while not stop.is_set():
         weights_step = _load_weights(net, weights_q, weights_step)
         step = learner_step.value
-        if produced > cfg.learning_starts + (step - first_step) * online_share / cfg.replay_ratio:
+        allowance = (cfg.learning_starts + (step - first_step) * online_share / cfg.replay_ratio) / cfg.actors
+        if produced > allowance:
             time.sleep(0.02)  # ahead of the learner: let it catch up
             continue
         if valid and time.monotonic() - last_eval > 60.0 * cfg.eval_minutes:
@@ -177,5 +189,7 @@ def actor_main(cfg_dict: dict, run_dir: str, start_episode: int, weights_q, data
         stats.update(epsilon=eps, weights_step=weights_step)
         transitions = rec.arrays()
         produced += len(transitions["action"])
-        episode += 1
-        put_until_stopped(data_q, {"kind": "episode", "episode": episode, "transitions": transitions, "stats": stats}, stop)
+        # "episode" is the count of episode indices started so far (the learner resumes from the largest).
+        put_until_stopped(data_q, {"kind": "episode", "episode": episode + 1, "transitions": transitions, "stats": stats},
+                          stop)
+        episode += cfg.actors

@@ -56,6 +56,7 @@ class Learner:
             self.demo = ReplayBuffer(len(demos["action"]), cfg.fov_size)
             self.demo.add(demos)
         self.step, self.episode = 0, 0
+        self.online_drawn = 0  # online samples drawn in this session (the replay is not checkpointed either)
         self.session_start = time.monotonic()
         self.elapsed = 0.0  # wall seconds of earlier sessions of this run (the CSV's elapsed_s adds this one)
 
@@ -114,6 +115,7 @@ class Learner:
             parts.append(self.demo.sample(n_demo, self.rng))
         if b - n_demo:
             parts.append(self.online.sample(b - n_demo, self.rng))
+            self.online_drawn += b - n_demo
         return to_tensors(concat(parts), self.device)
 
     def update(self) -> dict:
@@ -177,13 +179,19 @@ def train(cfg: TrainConfig, run_dir: Path, root: Path, progress: bool = True) ->
     train_log, eval_log = CsvLog(run_dir / "train.csv", TRAIN_COLUMNS), CsvLog(run_dir / "eval.csv", EVAL_COLUMNS)
 
     ctx = mp.get_context("spawn")
-    weights_q, data_q = ctx.Queue(maxsize=1), ctx.Queue(maxsize=64)
+    weights_qs = [ctx.Queue(maxsize=1) for _ in range(cfg.actors)]
+    data_q = ctx.Queue(maxsize=64 * cfg.actors)
     learner_step, stop = ctx.Value("q", learner.step), ctx.Event()
-    _publish(weights_q, learner.weights())
-    actor = ctx.Process(target=actor_main, name="mapf-actor", daemon=True,
-                        args=(cfg.asdict(), str(run_dir), learner.episode, weights_q, data_q, learner_step, stop))
-    actor.start()
+    weights = learner.weights()
+    for q in weights_qs:
+        _publish(q, weights)
+    actors = [ctx.Process(target=actor_main, name=f"mapf-actor-{k}", daemon=True,
+                          args=(cfg.asdict(), str(run_dir), learner.episode, weights_qs[k], data_q, learner_step, stop, k))
+              for k in range(cfg.actors)]
+    for actor in actors:
+        actor.start()
     previous_sigterm = signal.signal(signal.SIGTERM, _raise_interrupt)
+    deadline = time.monotonic() + 60.0 * cfg.session_minutes if cfg.session_minutes > 0 else float("inf")
 
     recent = collections.deque(maxlen=100)
     window = {"losses": [], "env": 0, "t": time.monotonic(), "steps": 0}
@@ -205,17 +213,28 @@ def train(cfg: TrainConfig, run_dir: Path, root: Path, progress: bool = True) ->
                 else:
                     for n, v in msg["result"]["sizes"].items():
                         eval_log.write({"step": msg["result"]["step"], "team_size": n, "score": msg["result"]["score"], **v})
-            if not actor.is_alive():
-                raise RuntimeError(f"the actor process died (exit code {actor.exitcode}); see its traceback above")
+            dead = [a for a in actors if not a.is_alive()]
+            if dead:
+                raise RuntimeError(f"actor process {dead[0].name} died (exit code {dead[0].exitcode}); "
+                                   "see its traceback above")
+            if time.monotonic() > deadline:
+                print(f"\nsession limit of {cfg.session_minutes:g} min reached at step {learner.step}: checkpointing; "
+                      "rerun the same command to continue")
+                break
             if learner.demo is None and len(learner.online) < max(1, cfg.learning_starts):
                 time.sleep(0.05)  # nothing to learn from yet
+                continue
+            if cfg.max_replay_ratio > 0 and learner.online_drawn > cfg.max_replay_ratio * max(1, learner.online.added):
+                time.sleep(0.005)  # the actors are behind: wait for fresh samples
                 continue
             window["losses"].append(learner.update())
             window["steps"] += 1
             learner_step.value = learner.step
             bar.update(1)
             if learner.step % cfg.weights_sync_every == 0:
-                _publish(weights_q, learner.weights())
+                weights = learner.weights()
+                for q in weights_qs:
+                    _publish(q, weights)
             if learner.step % cfg.log_every == 0 or learner.step == cfg.total_steps:
                 row = _log_row(cfg, learner, window, recent, time.monotonic() - learner.session_start)
                 train_log.write(row)
@@ -233,13 +252,14 @@ def train(cfg: TrainConfig, run_dir: Path, root: Path, progress: bool = True) ->
         bar.close()
         learner.save_checkpoint()
         plot_run(run_dir)
-        actor.join(timeout=10)
-        if actor.is_alive():
-            actor.terminate()
-            actor.join()
-        # Weights the actor never picked up sit in a queue feeder thread blocked on a full pipe;
+        for actor in actors:
+            actor.join(timeout=10)
+            if actor.is_alive():
+                actor.terminate()
+                actor.join()
+        # Weights an actor never picked up sit in a queue feeder thread blocked on a full pipe;
         # without this the interpreter would wait for it forever at exit.
-        for q in (weights_q, data_q):
+        for q in (*weights_qs, data_q):
             q.cancel_join_thread()
             q.close()
     return learner
