@@ -52,8 +52,8 @@ def test_train_smoke_then_resume(repo_root, tmp_path):
 @pytest.mark.slow
 def test_train_two_actors_no_demos_stops_at_session_limit(repo_root, tmp_path):
     """Several actor processes feed one learner; --session-minutes ends the session with a checkpoint."""
-    run = _run(repo_root, tmp_path, "--actors", "2", "--demo-instances", "0", "--session-minutes", "0.3", "--max-replay-ratio", "4",
-               "--total-steps", "1000000", "--run-name", "two")
+    run = _run(repo_root, tmp_path, "--actors", "2", "--demo-instances", "0", "--session-minutes", "0.3",
+               "--max-replay-ratio", "4", "--total-steps", "1000000", "--run-name", "two")
     assert run.returncode == 0, run.stderr[-3000:]
     assert "session limit of 0.3 min reached" in run.stdout
     run_dir = tmp_path / "runs" / "two"

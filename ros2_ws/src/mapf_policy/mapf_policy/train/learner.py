@@ -144,13 +144,14 @@ class Learner:
         return {"step": self.step, "state_dict": {k: v.detach().cpu().numpy().copy() for k, v in self.net.state_dict().items()}}
 
 
-def _publish(weights_q, item) -> None:
-    """Replace whatever the actor has not picked up yet with the newest weights."""
-    try:
-        weights_q.get_nowait()
-    except queue.Empty:
-        pass
-    weights_q.put(item)
+def _publish(weights_qs, item) -> None:
+    """In every actor's queue, replace whatever it has not picked up yet with the newest weights."""
+    for q in weights_qs:
+        try:
+            q.get_nowait()
+        except queue.Empty:
+            pass
+        q.put(item)
 
 
 def _raise_interrupt(signum, frame):
@@ -182,9 +183,7 @@ def train(cfg: TrainConfig, run_dir: Path, root: Path, progress: bool = True) ->
     weights_qs = [ctx.Queue(maxsize=1) for _ in range(cfg.actors)]
     data_q = ctx.Queue(maxsize=64 * cfg.actors)
     learner_step, stop = ctx.Value("q", learner.step), ctx.Event()
-    weights = learner.weights()
-    for q in weights_qs:
-        _publish(q, weights)
+    _publish(weights_qs, learner.weights())
     actors = [ctx.Process(target=actor_main, name=f"mapf-actor-{k}", daemon=True,
                           args=(cfg.asdict(), str(run_dir), learner.episode, weights_qs[k], data_q, learner_step, stop, k))
               for k in range(cfg.actors)]
@@ -232,9 +231,7 @@ def train(cfg: TrainConfig, run_dir: Path, root: Path, progress: bool = True) ->
             learner_step.value = learner.step
             bar.update(1)
             if learner.step % cfg.weights_sync_every == 0:
-                weights = learner.weights()
-                for q in weights_qs:
-                    _publish(q, weights)
+                _publish(weights_qs, learner.weights())
             if learner.step % cfg.log_every == 0 or learner.step == cfg.total_steps:
                 row = _log_row(cfg, learner, window, recent, time.monotonic() - learner.session_start)
                 train_log.write(row)
