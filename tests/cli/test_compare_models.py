@@ -53,3 +53,25 @@ def test_compare_refuses_missing_and_corrupt(repo_root, tmp_path):
     corrupt = subprocess.run([script, str(bad), "--sizes", "1", "--cases", "1", "--map-size", "10", "--no-progress"],
                              capture_output=True, text=True, timeout=120)
     assert corrupt.returncode == 2 and "bad.pt" in corrupt.stderr
+
+
+def test_compare_with_sampled_actions_is_repeatable_and_checked(repo_root, tmp_path):
+    torch.manual_seed(1)
+    path = tmp_path / "m.pt"
+    save_model(path, QNetwork(NetworkConfig()), NetworkConfig(), {"step": 0})
+    script = str(repo_root / "scripts" / "compare_models")
+    outs = []
+    for k in range(2):
+        out = tmp_path / f"sampled{k}.json"
+        run = subprocess.run([script, str(path), "--sizes", "2", "--cases", "2", "--map-size", "10", "--max-steps", "15",
+                              "--action-temperature", "0.5", "--sample-seed", "3", "--json", str(out), "--no-progress"],
+                             capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr[-2000:]
+        outs.append(json.loads(out.read_text()))
+    assert outs[0] == outs[1]  # same cases, same sampling seed: same results
+    assert outs[0]["action_temperature"] == 0.5 and outs[0]["sample_seed"] == 3
+    v = outs[0]["results"][str(path)]["2"]
+    assert v["cases"] == 2 and 0 < v["average_step"] <= 15
+    bad = subprocess.run([script, str(path), "--sizes", "1", "--cases", "1", "--map-size", "10",
+                          "--action-temperature", "-1", "--no-progress"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "action_temperature" in bad.stderr

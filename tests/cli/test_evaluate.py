@@ -161,3 +161,34 @@ def test_cli_errors(repo_root, tmp_path):
     proc = subprocess.run([script, "--solver", "greedy", "--instances", str(fixture), "--cases", "4"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "--cases 4 but the file holds 3 cases" in proc.stderr
+
+
+def test_cli_hscl_sampling_options_are_recorded_and_checked(repo_root, tmp_path):
+    import torch
+
+    from mapf_policy.config import NetworkConfig
+    from mapf_policy.model_io import save_model
+    from mapf_policy.network import QNetwork
+
+    torch.manual_seed(0)
+    model = save_model(tmp_path / "m.pt", QNetwork(NetworkConfig()), NetworkConfig(), {"steps": 0})
+    fixture = repo_root / "tests" / "fixtures" / "tiny.npz"
+    script = str(repo_root / "scripts" / "evaluate")
+    reports = []
+    for k in range(2):
+        out = tmp_path / f"hscl{k}.json"
+        proc = subprocess.run([script, "--solver", "hscl", "--model", str(model), "--action-temperature", "0.5",
+                               "--seed", "4", "--max-steps", "12", "--instances", str(fixture), "--json", str(out)],
+                              capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        reports.append(json.loads(out.read_text()))
+    assert reports[0]["settings"] == {"model": str(model), "action_temperature": 0.5, "seed": 4}
+    # Same seed: the same actions, so the same per-case steps and costs.
+    strip = [[{k: v for k, v in c.items() if k != "seconds"} for c in r["files"][0]["results"]] for r in reports]
+    assert strip[0] == strip[1]
+    bad = subprocess.run([script, "--solver", "hscl", "--model", str(model), "--action-temperature", "-2",
+                          "--instances", str(fixture)], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "action_temperature must be a finite number >= 0" in bad.stderr
+    other = subprocess.run([script, "--solver", "greedy", "--action-temperature", "0.1", "--instances", str(fixture)],
+                           capture_output=True, text=True, timeout=120)
+    assert other.returncode == 2 and "unknown option" in other.stderr and "action_temperature" in other.stderr

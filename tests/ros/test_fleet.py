@@ -149,7 +149,11 @@ def test_all_robots_reach_their_goals_without_failed_moves(run):
 
 
 def test_observations_are_mapf_env_observations_and_actions_the_policy_s(run, any_model):
-    """The world builds observations with MapfEnv's code; each policy node answers as the Policy would."""
+    """The world builds observations with MapfEnv's code; each policy node answers as the Policy would.
+
+    The nodes run with the default action temperature (sampled actions) and seed = robot id, so a Policy
+    per robot with the same seed, asked the same observations in the same order, draws the same actions.
+    """
     from mapf_policy.policy import Policy
     from mapf_world.env import MapfEnv
     from mapf_world.fleet_core import load_fleet_instance
@@ -159,7 +163,7 @@ def test_observations_are_mapf_env_observations_and_actions_the_policy_s(run, an
     inst = load_fleet_instance("map", map_file=p["map_file"], scen_file=p["scen_file"], n_robots=3)
     env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=1000)
     obs, _ = env.reset()
-    policy = Policy(str(any_model))
+    policies = [Policy(str(any_model), seed=i) for i in range(3)]
     for k in range(s["steps"]):
         requested = [log.moves[k][i].requested_action for i in range(3)]
         for i in range(3):
@@ -167,7 +171,7 @@ def test_observations_are_mapf_env_observations_and_actions_the_policy_s(run, an
             assert np.array_equal(np.asarray(msg.fov, np.float32).reshape(obs["fov"][i].shape), obs["fov"][i]), (k, i)
             assert np.array_equal(np.asarray(msg.last_action, np.float32), obs["last_action"][i]), (k, i)
             assert list(msg.position) == obs["position"][i].astype(int).tolist()
-            expected = int(policy.act(obs["fov"][i], obs["last_action"][i], obs["position"][i])[0])
+            expected = int(policies[i].act(obs["fov"][i], obs["last_action"][i], obs["position"][i])[0])
             assert log.actions[i][k].action == expected == requested[i], (k, i)
         obs, *_ = env.step(requested)
         assert env.positions.tolist() == s["positions"][k + 1]

@@ -30,6 +30,8 @@ CASES = {
     "policy_robot_id_disagrees": (P, "/robot_1", dict(robot_id=2), "robot_id 2 disagrees with namespace '/robot_1'"),
     "policy_no_robot_namespace": (P, None, dict(), "does not end in 'robot_<i>'"),
     "policy_negative_robot_id": (P, None, dict(robot_id=-4), "robot_id must be an integer >= 0"),
+    "policy_negative_action_temperature": (P, "/robot_0", dict(action_temperature=-0.5),
+                                           "action_temperature must be a finite number >= 0"),
     "drive_zero_speed": (D, "/robot_0", dict(max_linear_speed=0.0), "max_linear_speed must be a positive number"),
     "drive_negative_rtf": (D, "/robot_0", dict(real_time_factor=-2.0), "real_time_factor must be a positive number"),
     "recorder_bad_regex": (R, None, dict(exclude_regex="(", output="/tmp/never.mcap"), "not a valid regular expression"),

@@ -155,6 +155,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                    help="solver option (planning seconds per case)")
     p.add_argument("--model", type=Path, default=None, metavar="PATH", help="solver option (policy weights)")
+    p.add_argument("--action-temperature", type=float, default=None, metavar="T",
+                   help="solver option (learned policies): sample actions from softmax(Q/T); 0 = greedy argmax "
+                        "(default: the solver's own, see its settings in the JSON)")
+    p.add_argument("--seed", type=int, default=None, metavar="S",
+                   help="solver option (learned policies): seed of the action sampling, restarted at each case")
     args = p.parse_args(argv)
     if args.cases is not None and args.cases < 1:
         p.error(f"--cases must be >= 1, got {args.cases}")
@@ -169,7 +174,8 @@ def _trajectory_path(out: Path, source: Path, several: bool) -> Path:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    options = {k: v for k, v in (("epsilon", args.epsilon), ("time_limit", args.time_limit), ("model", args.model))
+    options = {k: v for k, v in (("epsilon", args.epsilon), ("time_limit", args.time_limit), ("model", args.model),
+                                 ("action_temperature", args.action_temperature), ("seed", args.seed))
                if v is not None}
     try:
         solver = get_solver(args.solver, **options)
@@ -183,6 +189,7 @@ def main(argv=None) -> int:
     from tqdm import tqdm
 
     report = {"solver": args.solver, "options": {k: str(v) for k, v in options.items()},
+              "settings": getattr(solver, "settings", {}),
               "max_steps": args.max_steps, "files": []}
     print(ROW.format(solver="solver", agents="agents", cases="cases", success="success", avg="avg_step",
                      soc="mean_soc", wall="wall"))

@@ -14,8 +14,15 @@ from pathlib import Path
 
 import torch
 
+import numpy as np
+from tqdm import tqdm
+
+from mapf_policy.action_selection import check_action_temperature
 from mapf_policy.model_io import load_model
+from mapf_policy.policy import Policy
+from mapf_policy.solver import HsclSolver
 from mapf_policy.train.actor import evaluate_by_size
+from mapf_world.evaluate import run_case
 from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
 
 
@@ -23,13 +30,35 @@ def held_out_cases(sizes, cases: int, seed: int, map_size: int, density: float) 
     return generated_cases(seed, COMPARE_STREAM, sizes, cases, map_size, density)
 
 
+def evaluate_sampled(path, instances: list, max_steps: int, action_temperature: float, sample_seed: int,
+                     progress: bool, settled_greedy: bool = True) -> dict:
+    """Like evaluate_by_size, with actions drawn through the evaluation solver (same dict layout)."""
+    policy = Policy(path, num_threads=None, action_temperature=action_temperature, seed=sample_seed,
+                    settled_greedy=settled_greedy)
+    solver = HsclSolver("hscl", policy, sample_seed, Path(path))
+    by_size: dict[int, list] = {}
+    desc = Path(path).parent.name + "/" + Path(path).name
+    for k, inst in enumerate(tqdm(instances, desc=desc, unit="case", disable=not progress)):
+        by_size.setdefault(inst.n_agents, []).append(run_case(solver, inst, max_steps, k))
+    return {str(n): {"success_rate": float(np.mean([r.success for r in runs])),
+                     "average_step": float(np.mean([r.steps for r in runs])),
+                     "successes": int(sum(r.success for r in runs)), "cases": len(runs)}
+            for n, runs in sorted(by_size.items())}
+
+
 def compare(paths, sizes, cases: int, seed: int = 0, map_size: int = 40, density: float = 0.3,
-            max_steps: int = 256, progress: bool = True) -> dict:
+            max_steps: int = 256, progress: bool = True, action_temperature: float = 0.0,
+            sample_seed: int = 0, settled_greedy: bool = True) -> dict:
     """{model path: {team size: {success_rate, average_step, successes, cases}}}."""
+    action_temperature = check_action_temperature(action_temperature)
     instances = held_out_cases(sizes, cases, seed, map_size, density)
     out = {}
     for path in paths:
         net, ncfg, _ = load_model(path)  # raises a clear error for a missing, corrupt or foreign file
+        if action_temperature > 0:
+            out[str(path)] = evaluate_sampled(path, instances, max_steps, action_temperature, sample_seed, progress,
+                                              settled_greedy)
+            continue
         net = net.to(memory_format=torch.channels_last).eval()
         out[str(path)] = evaluate_by_size(net, instances, ncfg.fov_size, max_steps, progress,
                                           desc=Path(path).parent.name + "/" + Path(path).name)
@@ -56,6 +85,13 @@ def main(argv=None) -> int:
     p.add_argument("--density", type=float, default=0.3)
     p.add_argument("--max-steps", type=int, default=256)
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    p.add_argument("--action-temperature", type=float, default=0.0, metavar="T",
+                   help="sample actions from softmax(Q/T) as scripts/evaluate does; 0 = greedy (default)")
+    p.add_argument("--sample-seed", type=int, default=0, metavar="S",
+                   help="seed of the action sampling, restarted at each case (default 0)")
+    p.add_argument("--sample-settled", action="store_true",
+                   help="ablation: sample settled agents too (on their goal, no agent beside them), which the "
+                        "policy otherwise keeps greedy")
     p.add_argument("--json", type=Path, help="also write the results here")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
@@ -68,13 +104,17 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     try:
         results = compare(args.models, args.sizes, args.cases, args.seed, args.map_size, args.density,
-                          args.max_steps, progress=not args.no_progress)
+                          args.max_steps, progress=not args.no_progress,
+                          action_temperature=args.action_temperature, sample_seed=args.sample_seed,
+                          settled_greedy=not args.sample_settled)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(markdown(results, args.sizes))
     if args.json:
         args.json.write_text(json.dumps({"sizes": args.sizes, "cases": args.cases, "seed": args.seed,
+                                         "action_temperature": args.action_temperature,
+                                         "sample_seed": args.sample_seed, "sample_settled": args.sample_settled,
                                          "results": results}, indent=1))
     return 0
 

@@ -1,0 +1,151 @@
+"""Action selection: greedy argmax, Boltzmann sampling, settled agents, and the deadlock it exists for."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from mapf_policy.action_selection import check_action_temperature, select_actions, settled
+from mapf_policy.config import NetworkConfig
+from mapf_policy.model_io import save_model
+from mapf_policy.network import QNetwork
+from mapf_policy.solver import make_hscl
+from mapf_world.env import MapfEnv
+from mapf_world.evaluate import run_case
+from mapf_world.grid import grid_from_text
+from mapf_world.instances import Instance, generate_instance
+from mapf_world.observation import ObservationBuilder
+
+# One corridor with a single side pocket above its middle cell (0, 3).
+CORRIDOR = grid_from_text("""
+###.###
+.......
+#######
+""")
+
+
+def test_zero_temperature_is_argmax_with_ties_to_stay():
+    q = np.array([[0.1, 0.3, 0.3, 0.0, -1.0], [0.5, 0.5, 0.5, 0.5, 0.5], [-2, -1, -3, 0, -4]])
+    assert select_actions(q, 0.0, None).tolist() == [1, 0, 3]
+
+
+def test_sampling_follows_softmax_of_q_over_temperature():
+    q = np.array([[0.0, 0.2, -0.1, 0.05, 0.0]])
+    t = 0.1
+    draws = select_actions(np.repeat(q, 40_000, axis=0), t, np.random.default_rng(3))
+    freq = np.bincount(draws, minlength=5) / draws.size
+    expected = np.exp(q[0] / t) / np.exp(q[0] / t).sum()
+    # 40,000 draws: the standard error of each share is below 0.0025.
+    np.testing.assert_allclose(freq, expected, atol=0.01)
+    # A small temperature concentrates on the argmax; a same-seed generator repeats the draws.
+    assert (select_actions(np.repeat(q, 1000, axis=0), 0.01, np.random.default_rng(0)) == 1).mean() > 0.99
+    a = select_actions(np.repeat(q, 50, axis=0), t, np.random.default_rng(7))
+    b = select_actions(np.repeat(q, 50, axis=0), t, np.random.default_rng(7))
+    assert np.array_equal(a, b)
+
+
+def test_greedy_rows_ignore_the_noise():
+    q = np.tile([0.0, 0.0, 0.0, 0.0, 0.01], (500, 1))
+    rows = np.zeros(500, dtype=bool)
+    rows[::2] = True
+    a = select_actions(q, 1.0, np.random.default_rng(1), greedy_rows=rows)
+    assert (a[rows] == 4).all()
+    assert len(set(a[~rows].tolist())) == 5  # near-uniform draws elsewhere
+
+
+def test_settled_means_on_goal_with_no_agent_next_to_it():
+    grid = grid_from_text("""
+.....
+.....
+.....
+""")
+    # Agent 0 on its goal, alone; agent 1 on its goal with agent 2 beside it; agent 2 off its goal.
+    goals = np.array([[0, 0], [2, 3], [0, 4]])
+    positions = np.array([[0, 0], [2, 3], [2, 4]])
+    obs = ObservationBuilder(grid, goals, fov_size=3).build(positions, np.zeros(3, dtype=np.int64))
+    assert settled(obs["fov"]).tolist() == [True, False, False]
+    with pytest.raises(ValueError, match="fov must have shape"):
+        settled(obs["fov"][:, :5])
+
+
+def test_bad_input_is_refused_with_the_reason():
+    with pytest.raises(ValueError, match="finite number >= 0"):
+        check_action_temperature(-0.1)
+    with pytest.raises(ValueError, match="finite number >= 0"):
+        check_action_temperature(float("nan"))
+    with pytest.raises(ValueError, match="a number"):
+        check_action_temperature("hot")
+    with pytest.raises(ValueError, match="needs a random generator"):
+        select_actions(np.zeros((1, 5)), 0.5, None)
+    with pytest.raises(ValueError, match="NaN"):
+        select_actions(np.array([[0.0, np.nan, 0, 0, 0]]), 0.0, None)
+    with pytest.raises(ValueError, match=r"shape \(batch, actions\)"):
+        select_actions(np.zeros(5), 0.0, None)
+    with pytest.raises(ValueError, match="greedy_rows must have shape"):
+        select_actions(np.zeros((2, 5)), 0.5, np.random.default_rng(0), greedy_rows=np.zeros(3, dtype=bool))
+
+
+def goal_seeking_q(obs: dict) -> np.ndarray:
+    """A stand-in Q: 1 for a move that gets closer to the goal, 0.2 for staying on the goal, else 0."""
+    c = obs["fov"].shape[-1] // 2
+    bits = obs["fov"][:, 2:6, c, c]
+    on_goal = bits.sum(axis=1) == 0
+    return np.concatenate([np.where(on_goal, 0.2, 0.0)[:, None], bits], axis=1)
+
+
+def run_corridor(action_temperature: float, seed: int) -> tuple[bool, int]:
+    env = MapfEnv(CORRIDOR, [[1, 0], [1, 6]], [[1, 6], [1, 0]], fov_size=3, max_steps=256)
+    obs, _ = env.reset()
+    rng = np.random.default_rng(seed)
+    while True:
+        actions = select_actions(goal_seeking_q(obs), action_temperature, rng, greedy_rows=settled(obs["fov"]))
+        obs, _, terminated, truncated, info = env.step(actions)
+        if terminated or truncated:
+            return bool(info["success"]), env.step_count
+
+
+def test_sampling_breaks_the_head_on_deadlock_that_greedy_never_leaves():
+    # Greedy: the two agents meet in the corridor and push into each other until the step limit.
+    assert run_corridor(0.0, seed=0) == (False, 256)
+    # Sampling: one of them sooner or later steps into the pocket and lets the other pass. Every seed
+    # tried here succeeds; the shortest joint plan takes 8 steps (one agent waits in the pocket).
+    for seed in range(5):
+        success, steps = run_corridor(0.5, seed)
+        assert success and 8 <= steps < 256, (seed, steps)
+
+
+def test_hscl_solver_settings_and_repeatable_cases(tmp_path):
+    torch.manual_seed(0)
+    cfg = NetworkConfig()
+    path = save_model(tmp_path / "m.pt", QNetwork(cfg), cfg, {"steps": 0})
+    inst = generate_instance(5, size=12, density=0.2, n_agents=4)
+    assert isinstance(inst, Instance)
+    sampled = make_hscl(model=str(path), action_temperature=0.5, seed=11)
+    assert sampled.settings == {"model": str(path), "action_temperature": 0.5, "seed": 11}
+    # The generator restarts at each case: running a case twice gives the same trajectory.
+    first = run_case(sampled, inst, 20).positions
+    assert np.array_equal(first, run_case(sampled, inst, 20).positions)
+    # Temperature 0 is the network's argmax.
+    greedy = make_hscl(model=str(path), action_temperature=0)
+    obs, _ = MapfEnv(inst.grid, inst.starts, inst.goals).reset()
+    q = greedy.policy.q_values(obs["fov"], obs["last_action"], obs["position"]).numpy()
+    assert np.array_equal(greedy.act(obs), q.argmax(axis=1))
+    with pytest.raises(ValueError, match="finite number >= 0"):
+        make_hscl(model=str(path), action_temperature=-1)
+    with pytest.raises(ValueError, match="seed must be an integer >= 0"):
+        make_hscl(model=str(path), seed=-3)
+
+
+def test_policy_keeps_settled_agents_greedy_unless_told_not_to(tmp_path):
+    from mapf_policy.policy import Policy
+    torch.manual_seed(2)
+    cfg = NetworkConfig()
+    path = save_model(tmp_path / "m.pt", QNetwork(cfg), cfg, {"steps": 0})
+    grid = np.zeros((12, 12), dtype=np.uint8)
+    obs = ObservationBuilder(grid, [[5, 5]]).build([[5, 5]], [0])  # on its goal, nobody near: settled
+    batch = {k: np.repeat(v, 300, axis=0) for k, v in obs.items()}
+    kept = Policy(path, action_temperature=100.0, seed=0)
+    argmax = int(kept.q_values(obs["fov"], obs["last_action"], obs["position"]).argmax())
+    assert (kept.act_obs(batch) == argmax).all()
+    sampled = Policy(path, action_temperature=100.0, seed=0, settled_greedy=False)
+    assert len(set(sampled.act_obs(batch).tolist())) == 5
