@@ -74,10 +74,8 @@ class Policy:
     def act(self, fov, last_action, position) -> np.ndarray:
         """(B,) int64 actions: greedy (ties go to the lowest index, i.e. stay) or sampled, per action_temperature."""
         q = self.q_values(fov, last_action, position).cpu().numpy()
-        if self.action_temperature == 0:
-            return select_actions(q, 0.0, None)
         rows = None
-        if self.settled_greedy:
+        if self.action_temperature > 0 and self.settled_greedy:  # greedy needs no settled mask
             f = fov.cpu().numpy() if isinstance(fov, torch.Tensor) else np.asarray(fov)
             rows = settled(f.reshape(q.shape[0], *f.shape[-3:]))
         return select_actions(q, self.action_temperature, self.rng, greedy_rows=rows)

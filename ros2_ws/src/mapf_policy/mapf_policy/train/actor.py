@@ -91,14 +91,22 @@ def validation_instances(cfg: TrainConfig) -> list:
 def evaluate_by_size(net: QNetwork, instances: list, fov_size: int, max_steps: int, progress: bool = False,
                      desc: str = "") -> dict:
     """Greedy runs: {team size (str): success_rate, average_step (a failure counts max_steps), successes, cases}."""
-    by_size: dict[int, list] = {}
+    outcomes = []
     for inst in tqdm(instances, desc=desc, unit="case", disable=not progress):
         env = MapfEnv(inst.grid, inst.starts, inst.goals, fov_size=fov_size, max_steps=max_steps)
         _, stats = run_episode(net, env, 0.0, np.random.default_rng(0), record=False)
-        by_size.setdefault(inst.n_agents, []).append(stats)
-    return {str(n): {"success_rate": float(np.mean([r["success"] for r in runs])),
-                     "average_step": float(np.mean([r["steps"] for r in runs])),
-                     "successes": int(sum(r["success"] for r in runs)), "cases": len(runs)}
+        outcomes.append((inst.n_agents, stats["success"], stats["steps"]))
+    return summarize_by_size(outcomes)
+
+
+def summarize_by_size(outcomes) -> dict:
+    """(team size, success, steps) per case -> {team size (str): success_rate, average_step, successes, cases}."""
+    by_size: dict[int, list] = {}
+    for n, success, steps in outcomes:
+        by_size.setdefault(int(n), []).append((bool(success), steps))
+    return {str(n): {"success_rate": float(np.mean([s for s, _ in runs])),
+                     "average_step": float(np.mean([t for _, t in runs])),
+                     "successes": int(sum(s for s, _ in runs)), "cases": len(runs)}
             for n, runs in sorted(by_size.items())}
 
 

@@ -2,7 +2,9 @@
 
 For ablations and snapshot choice. Every model meets the same cases: seed stream COMPARE_STREAM,
 apart from the demonstration, actor and validation streams, so no model trained on them. Greedy
-actions, the benchmark's rules and step limit; average step counts the limit for a failed case.
+actions by default (--action-temperature 0); with T > 0 actions are drawn as by `scripts/evaluate
+--solver hscl --action-temperature T`, the generator restarting from --sample-seed at each case. The
+benchmark's rules and step limit; average step counts the limit for a failed case.
   scripts/compare_models models/hscl.pt runs/*/last.pt --sizes 4 8 16 --cases 25 --json out.json
 """
 from __future__ import annotations
@@ -13,37 +15,34 @@ import sys
 from pathlib import Path
 
 import torch
-
-import numpy as np
 from tqdm import tqdm
 
 from mapf_policy.action_selection import check_action_temperature
 from mapf_policy.model_io import load_model
+from mapf_policy.network import QNetwork
 from mapf_policy.policy import Policy
 from mapf_policy.solver import HsclSolver
-from mapf_policy.train.actor import evaluate_by_size
-from mapf_world.evaluate import run_case
+from mapf_policy.train.actor import evaluate_by_size, summarize_by_size
 from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
+from mapf_world.evaluate import run_case
 
 
 def held_out_cases(sizes, cases: int, seed: int, map_size: int, density: float) -> list:
     return generated_cases(seed, COMPARE_STREAM, sizes, cases, map_size, density)
 
 
-def evaluate_sampled(path, instances: list, max_steps: int, action_temperature: float, sample_seed: int,
-                     progress: bool, settled_greedy: bool = True) -> dict:
+def evaluate_sampled(net: QNetwork, path, instances: list, max_steps: int, action_temperature: float,
+                     sample_seed: int, progress: bool, settled_greedy: bool = True) -> dict:
     """Like evaluate_by_size, with actions drawn through the evaluation solver (same dict layout)."""
-    policy = Policy(path, num_threads=None, action_temperature=action_temperature, seed=sample_seed,
+    policy = Policy(net, num_threads=None, action_temperature=action_temperature, seed=sample_seed,
                     settled_greedy=settled_greedy)
     solver = HsclSolver("hscl", policy, sample_seed, Path(path))
-    by_size: dict[int, list] = {}
     desc = Path(path).parent.name + "/" + Path(path).name
+    outcomes = []
     for k, inst in enumerate(tqdm(instances, desc=desc, unit="case", disable=not progress)):
-        by_size.setdefault(inst.n_agents, []).append(run_case(solver, inst, max_steps, k))
-    return {str(n): {"success_rate": float(np.mean([r.success for r in runs])),
-                     "average_step": float(np.mean([r.steps for r in runs])),
-                     "successes": int(sum(r.success for r in runs)), "cases": len(runs)}
-            for n, runs in sorted(by_size.items())}
+        result = run_case(solver, inst, max_steps, k)
+        outcomes.append((inst.n_agents, result.success, result.steps))
+    return summarize_by_size(outcomes)
 
 
 def compare(paths, sizes, cases: int, seed: int = 0, map_size: int = 40, density: float = 0.3,
@@ -56,8 +55,8 @@ def compare(paths, sizes, cases: int, seed: int = 0, map_size: int = 40, density
     for path in paths:
         net, ncfg, _ = load_model(path)  # raises a clear error for a missing, corrupt or foreign file
         if action_temperature > 0:
-            out[str(path)] = evaluate_sampled(path, instances, max_steps, action_temperature, sample_seed, progress,
-                                              settled_greedy)
+            out[str(path)] = evaluate_sampled(net, path, instances, max_steps, action_temperature, sample_seed,
+                                              progress, settled_greedy)
             continue
         net = net.to(memory_format=torch.channels_last).eval()
         out[str(path)] = evaluate_by_size(net, instances, ncfg.fov_size, max_steps, progress,
