@@ -69,9 +69,17 @@ def test_compare_with_sampled_actions_is_repeatable_and_checked(repo_root, tmp_p
         assert run.returncode == 0, run.stderr[-2000:]
         outs.append(json.loads(out.read_text()))
     assert outs[0] == outs[1]  # same cases, same sampling seed: same results
-    assert outs[0]["action_temperature"] == 0.5 and outs[0]["sample_seed"] == 3
+    # The default base rule here is the paper's; the flag replaces only the temperature.
+    assert outs[0]["action_rule"] == {"action_temperature": 0.5, "backtrack_penalty": 0.0,
+                                      "mask_obstacle_moves": False, "settled_greedy": True}
+    assert outs[0]["sample_seed"] == 3
     v = outs[0]["results"][str(path)]["2"]
     assert v["cases"] == 2 and 0 < v["average_step"] <= 15
     bad = subprocess.run([script, str(path), "--sizes", "1", "--cases", "1", "--map-size", "10",
                           "--action-temperature", "-1", "--no-progress"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "action_temperature" in bad.stderr
+    shipped = subprocess.run([script, str(path), "--sizes", "2", "--cases", "1", "--map-size", "10", "--max-steps", "15",
+                              "--action-rule", "default", "--json", str(tmp_path / "shipped.json"), "--no-progress"],
+                             capture_output=True, text=True, timeout=300)
+    assert shipped.returncode == 0, shipped.stderr[-2000:]
+    assert json.loads((tmp_path / "shipped.json").read_text())["action_rule"]["backtrack_penalty"] == 0.05

@@ -32,6 +32,8 @@ CASES = {
     "policy_negative_robot_id": (P, None, dict(robot_id=-4), "robot_id must be an integer >= 0"),
     "policy_negative_action_temperature": (P, "/robot_0", dict(action_temperature=-0.5),
                                            "action_temperature must be a finite number >= 0"),
+    "policy_negative_backtrack_penalty": (P, "/robot_0", dict(backtrack_penalty=-1.0),
+                                          "backtrack_penalty must be a finite number >= 0"),
     "drive_zero_speed": (D, "/robot_0", dict(max_linear_speed=0.0), "max_linear_speed must be a positive number"),
     "drive_negative_rtf": (D, "/robot_0", dict(real_time_factor=-2.0), "real_time_factor must be a positive number"),
     "recorder_bad_regex": (R, None, dict(exclude_regex="(", output="/tmp/never.mcap"), "not a valid regular expression"),

@@ -1,14 +1,17 @@
-"""Action selection: greedy argmax, Boltzmann sampling, settled agents, and the deadlock it exists for."""
+"""Action selection: greedy argmax, Boltzmann sampling, settled agents, the deadlock it exists for, the
+obstacle mask, the backtrack penalty and the typed ActionRule."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
 
-from mapf_policy.action_selection import check_action_temperature, select_actions, settled
+from mapf_policy.action_selection import (PAPER_RULE, ActionRule, backtrack_moves, check_action_temperature, make_rule,
+                                          obstacle_moves, select_actions, settled)
 from mapf_policy.config import NetworkConfig
 from mapf_policy.model_io import save_model
 from mapf_policy.network import QNetwork
+from mapf_policy.policy import Policy
 from mapf_policy.solver import make_hscl
 from mapf_world.env import MapfEnv
 from mapf_world.evaluate import run_case
@@ -121,12 +124,14 @@ def test_hscl_solver_settings_and_repeatable_cases(tmp_path):
     inst = generate_instance(5, size=12, density=0.2, n_agents=4)
     assert isinstance(inst, Instance)
     sampled = make_hscl(model=str(path), action_temperature=0.5, seed=11)
-    assert sampled.settings == {"model": str(path), "action_temperature": 0.5, "seed": 11}
+    assert sampled.settings == {"model": str(path), "action_temperature": 0.5, "backtrack_penalty": 0.05,
+                                "mask_obstacle_moves": True, "settled_greedy": True, "seed": 11}
     # The generator restarts at each case: running a case twice gives the same trajectory.
     first = run_case(sampled, inst, 20).positions
     assert np.array_equal(first, run_case(sampled, inst, 20).positions)
-    # Temperature 0 is the network's argmax.
-    greedy = make_hscl(model=str(path), action_temperature=0)
+    # The paper's rule is the network's argmax.
+    greedy = make_hscl(model=str(path), action_rule="paper")
+    assert greedy.policy.rule == PAPER_RULE
     obs, _ = MapfEnv(inst.grid, inst.starts, inst.goals).reset()
     q = greedy.policy.q_values(obs["fov"], obs["last_action"], obs["position"]).numpy()
     assert np.array_equal(greedy.act(obs), q.argmax(axis=1))
@@ -134,18 +139,91 @@ def test_hscl_solver_settings_and_repeatable_cases(tmp_path):
         make_hscl(model=str(path), action_temperature=-1)
     with pytest.raises(ValueError, match="seed must be an integer >= 0"):
         make_hscl(model=str(path), seed=-3)
+    with pytest.raises(ValueError, match="solver hscl: unknown action rule 'greedy'"):
+        make_hscl(model=str(path), action_rule="greedy")
+    with pytest.raises(ValueError, match="backtrack_penalty must be a finite number >= 0"):
+        make_hscl(model=str(path), backtrack_penalty=-0.1)
 
 
 def test_policy_keeps_settled_agents_greedy_unless_told_not_to(tmp_path):
-    from mapf_policy.policy import Policy
     torch.manual_seed(2)
     cfg = NetworkConfig()
     path = save_model(tmp_path / "m.pt", QNetwork(cfg), cfg, {"steps": 0})
     grid = np.zeros((12, 12), dtype=np.uint8)
     obs = ObservationBuilder(grid, [[5, 5]]).build([[5, 5]], [0])  # on its goal, nobody near: settled
     batch = {k: np.repeat(v, 300, axis=0) for k, v in obs.items()}
-    kept = Policy(path, action_temperature=100.0, seed=0)
+    kept = Policy(path, rule=make_rule(action_temperature=100.0), seed=0)
     argmax = int(kept.q_values(obs["fov"], obs["last_action"], obs["position"]).argmax())
     assert (kept.act_obs(batch) == argmax).all()
-    sampled = Policy(path, action_temperature=100.0, seed=0, settled_greedy=False)
+    sampled = Policy(path, rule=make_rule(action_temperature=100.0, settled_greedy=False), seed=0)
     assert len(set(sampled.act_obs(batch).tolist())) == 5
+
+
+def test_obstacle_moves_are_the_walls_and_map_edges_around_the_agent():
+    grid = grid_from_text("""
+.#..
+....
+""")
+    obs = ObservationBuilder(grid, [[1, 3], [1, 0]], fov_size=3).build([[0, 0], [1, 2]], np.zeros(2, dtype=np.int64))
+    # Agent 0 at the top-left corner, wall to its right: up, left (map edge) and right (obstacle) are blocked.
+    # Agent 1 at (1, 2): down is off the map; up (0, 2) is free; no agent counts as an obstacle.
+    assert obstacle_moves(obs["fov"]).tolist() == [[False, True, False, True, True],
+                                                   [False, False, True, False, False]]
+
+
+def test_excluded_actions_are_never_chosen_and_stay_cannot_be_excluded():
+    q = np.tile([0.0, 5.0, 0.0, 0.0, 0.0], (2000, 1))
+    excluded = np.zeros_like(q, dtype=bool)
+    excluded[:, 1] = True
+    greedy = select_actions(q, 0.0, None, excluded=excluded)
+    assert (greedy == 0).all()  # the best action is excluded; ties among the rest go to stay
+    sampled = select_actions(q, 10.0, np.random.default_rng(0), excluded=excluded)
+    assert 1 not in set(sampled.tolist()) and set(sampled.tolist()) == {0, 2, 3, 4}
+    excluded[0, 0] = True
+    with pytest.raises(ValueError, match="stay.*cannot be excluded"):
+        select_actions(q, 0.0, None, excluded=excluded)
+    with pytest.raises(ValueError, match="excluded must have the shape"):
+        select_actions(q, 0.0, None, excluded=np.zeros((2000, 4), dtype=bool))
+
+
+def test_backtrack_move_points_at_the_previous_cell_only_when_it_is_a_neighbour():
+    position = np.array([[5, 5], [5, 5], [5, 5], [5, 5]])
+    previous = np.array([[4, 5], [5, 6], [5, 5], [7, 5]])  # came from above, from the right, stayed, jumped
+    assert backtrack_moves(position, previous).tolist() == [[False, True, False, False, False],
+                                                            [False, False, False, False, True],
+                                                            [False] * 5, [False] * 5]
+    with pytest.raises(ValueError, match="shape \\(batch, 2\\)"):
+        backtrack_moves(position, previous[:2])
+
+
+def test_policy_penalises_moving_back_from_its_own_memory_and_reset_forgets(tmp_path):
+    torch.manual_seed(4)
+    cfg = NetworkConfig()
+    path = save_model(tmp_path / "m.pt", QNetwork(cfg), cfg, {"steps": 0})
+    grid = np.zeros((12, 12), dtype=np.uint8)
+    build = ObservationBuilder(grid, [[9, 9]]).build
+    before, now = build([[5, 4]], [0]), build([[5, 5]], [4])  # moved right from (5, 4) to (5, 5)
+    batch = {k: np.repeat(v, 400, axis=0) for k, v in now.items()}
+    rule = make_rule(action_temperature=100.0, backtrack_penalty=1e6)  # near-uniform draws, moving back vetoed
+    policy = Policy(path, rule=rule, seed=0)
+    policy.act_obs({k: np.repeat(v, 400, axis=0) for k, v in before.items()})
+    assert set(policy.act_obs(batch).tolist()) == {0, 1, 2, 4}  # never 3 (left, back to (5, 4))
+    policy.reset(0)  # a new episode: no previous cell
+    assert set(policy.act_obs(batch).tolist()) == {0, 1, 2, 3, 4}
+    # Without the penalty, the memory changes nothing.
+    free = Policy(path, rule=make_rule(action_temperature=100.0, backtrack_penalty=0.0), seed=0)
+    free.act_obs({k: np.repeat(v, 400, axis=0) for k, v in before.items()})
+    assert 3 in set(free.act_obs(batch).tolist())
+
+
+def test_action_rule_is_validated_and_named_rules_are_known():
+    assert ActionRule().asdict() == {"action_temperature": 0.04, "backtrack_penalty": 0.05,
+                                     "mask_obstacle_moves": True, "settled_greedy": True}
+    assert make_rule("paper") == PAPER_RULE and PAPER_RULE.action_temperature == 0.0
+    assert make_rule("paper", action_temperature=0.04).mask_obstacle_moves is False
+    with pytest.raises(ValueError, match="mask_obstacle_moves must be true or false"):
+        ActionRule(mask_obstacle_moves="yes")
+    with pytest.raises(ValueError, match="unknown action-rule fields \\['temperature'\\]"):
+        make_rule(temperature=0.1)
+    with pytest.raises(ValueError, match="rule must be an ActionRule"):
+        Policy(QNetwork(NetworkConfig()), rule={"action_temperature": 0.1})

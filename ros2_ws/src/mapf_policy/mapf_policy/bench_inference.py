@@ -12,7 +12,7 @@ import time
 import numpy as np
 import torch
 
-from mapf_policy.action_selection import DEFAULT_ACTION_TEMPERATURE
+from mapf_policy.action_selection import RULES
 from mapf_policy.config import NetworkConfig
 from mapf_policy.network import QNetwork
 from mapf_policy.policy import Policy
@@ -38,8 +38,9 @@ def main(argv=None) -> None:
     parser.add_argument("--model", default=None, help="model file (default models/hscl.pt; untrained weights if absent)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--repeats", type=int, default=200, help="timed calls per batch size")
-    parser.add_argument("--action-temperature", type=float, default=DEFAULT_ACTION_TEMPERATURE,
-                        help=f"action sampling as shipped (default {DEFAULT_ACTION_TEMPERATURE}); 0 = greedy argmax")
+    parser.add_argument("--action-rule", default="default", choices=sorted(RULES),
+                        help="'default': the shipped rule (sampling, obstacle mask, backtrack penalty); "
+                             "'paper': greedy argmax only")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 64], help="batch sizes to time")
     args = parser.parse_args(argv)
     path = args.model or default_model_path()
@@ -48,10 +49,10 @@ def main(argv=None) -> None:
         model = QNetwork(NetworkConfig())
     else:
         model = str(path)
-    policy = Policy(model, num_threads=args.threads, action_temperature=args.action_temperature)
+    policy = Policy(model, num_threads=args.threads, rule=RULES[args.action_rule])
     rng = np.random.default_rng(0)
     print(f"cpu: {platform.processor() or platform.machine()}, torch {torch.__version__}, threads {torch.get_num_threads()}, "
-          f"action temperature {policy.action_temperature}")
+          f"action rule {args.action_rule} {policy.rule.asdict()}")
     for b in args.batches:
         ms = time_batch(policy, b, args.repeats, rng)
         print(f"batch {b:3d}: median {np.median(ms):.3f} ms, p90 {np.percentile(ms, 90):.3f} ms ({args.repeats} repeats)")

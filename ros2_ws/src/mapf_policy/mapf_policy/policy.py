@@ -1,7 +1,10 @@
 """Policy: actions for a batch of agents, each from its own observation only.
 
-Greedy argmax_a Q(s, a) (the paper) with `action_temperature` 0, or a draw from softmax(Q / T) with
-T > 0 (see action_selection.py for why). A Policy owns its random generator: one Policy per robot.
+The Q-values become actions by an ActionRule (action_selection.py): greedy argmax (the paper's,
+PAPER_RULE) or, by default, a draw from softmax(Q / T) with obstacle moves excluded and a penalty on
+moving back. A Policy owns its random generator and each row's previous cell, so rows are agents and
+their order must stay fixed during an episode; `reset` starts a new one. One Policy per robot, or one
+per team with one row per agent (the evaluation solver): rows never see each other's state.
 
 Inputs are numpy arrays or tensors: fov (B, 6, l, l), last_action (B, 5) one-hot, position (B, 2) raw
 (row, col). A single agent may also be passed without the batch dimension. Output: (B,) int64 actions.
@@ -13,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mapf_policy.action_selection import DEFAULT_ACTION_TEMPERATURE, check_action_temperature, select_actions, settled
+from mapf_policy.action_selection import ActionRule, backtrack_moves, obstacle_moves, select_actions, settled
 from mapf_policy.config import NetworkConfig
 from mapf_policy.model_io import load_model
 from mapf_policy.network import QNetwork
@@ -23,8 +26,7 @@ class Policy:
     """Wraps a QNetwork for inference. `model` is a model file path or a QNetwork."""
 
     def __init__(self, model, num_threads: int | None = 1, device: str = "cpu",
-                 action_temperature: float = DEFAULT_ACTION_TEMPERATURE, seed: int | None = 0,
-                 settled_greedy: bool = True):
+                 rule: ActionRule | None = None, seed: int | None = 0):
         if isinstance(model, QNetwork):
             self.net, self.cfg, self.meta = model, model.cfg, {}
         elif isinstance(model, (str, Path)):
@@ -40,16 +42,24 @@ class Policy:
         # channels_last makes the CPU convolutions about 25% faster on this network (measured,
         # scripts/bench_inference); results are identical up to float rounding.
         self.net = self.net.to(self.device, memory_format=torch.channels_last).eval()
-        self.action_temperature = check_action_temperature(action_temperature)
-        # False samples every agent, settled ones too: only for the ablation in scripts/compare_models.
-        self.settled_greedy = bool(settled_greedy)
-        self.reseed(seed)
+        if rule is None:
+            rule = ActionRule()
+        if not isinstance(rule, ActionRule):
+            raise ValueError(f"rule must be an ActionRule, got {type(rule).__name__}")
+        self.rule = rule
+        self.reset(seed)
 
-    def reseed(self, seed: int | None) -> None:
-        """Restart the action-sampling generator (an int seed makes runs repeatable; None draws one)."""
+    @property
+    def action_temperature(self) -> float:
+        return self.rule.action_temperature
+
+    def reset(self, seed: int | None) -> None:
+        """Start an episode: restart the sampling generator (an int seed makes runs repeatable; None draws
+        one) and forget every row's previous cell."""
         if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
             raise ValueError(f"seed must be an integer >= 0 or None, got {seed!r}")
         self.rng = np.random.default_rng(seed)
+        self._previous = None  # (B, 2) cells of the last act() call
 
     @property
     def network_config(self) -> NetworkConfig:
@@ -72,13 +82,20 @@ class Policy:
             return self.net(f, a, p)
 
     def act(self, fov, last_action, position) -> np.ndarray:
-        """(B,) int64 actions: greedy (ties go to the lowest index, i.e. stay) or sampled, per action_temperature."""
-        q = self.q_values(fov, last_action, position).cpu().numpy()
-        rows = None
-        if self.action_temperature > 0 and self.settled_greedy:  # greedy needs no settled mask
-            f = fov.cpu().numpy() if isinstance(fov, torch.Tensor) else np.asarray(fov)
-            rows = settled(f.reshape(q.shape[0], *f.shape[-3:]))
-        return select_actions(q, self.action_temperature, self.rng, greedy_rows=rows)
+        """(B,) int64 actions by the rule; greedy ties go to the lowest index (stay). Remembers `position`
+        as each row's previous cell for the next call."""
+        q = self.q_values(fov, last_action, position).cpu().numpy().astype(np.float64)
+        rule, batch = self.rule, q.shape[0]
+        f = fov.cpu().numpy() if isinstance(fov, torch.Tensor) else np.asarray(fov)
+        f = f.reshape(batch, *f.shape[-3:])
+        pos = position.cpu().numpy() if isinstance(position, torch.Tensor) else np.asarray(position)
+        pos = pos.reshape(batch, 2)
+        if rule.backtrack_penalty > 0 and self._previous is not None and self._previous.shape == pos.shape:
+            q = q - rule.backtrack_penalty * backtrack_moves(pos, self._previous)
+        self._previous = pos.copy()
+        rows = settled(f) if rule.action_temperature > 0 and rule.settled_greedy else None
+        excluded = obstacle_moves(f) if rule.mask_obstacle_moves else None
+        return select_actions(q, rule.action_temperature, self.rng, greedy_rows=rows, excluded=excluded)
 
     def act_obs(self, obs: dict) -> np.ndarray:
         """Actions for an observation dict of MapfEnv (keys fov, last_action, position)."""

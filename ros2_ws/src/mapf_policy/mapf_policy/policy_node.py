@@ -5,10 +5,12 @@ Subscribes to its own relative `observation` topic only and publishes its own re
 robots do not communicate (paper section V-B); the namespace it is started in decides its topics.
 It refuses to start (exit 2) when the model file is missing or does not hold a compatible network.
 
-Parameters: robot_id, model_path, torch_threads, device, action_temperature (softmax sampling of the
-action, 0 = greedy argmax; default DEFAULT_ACTION_TEMPERATURE, see mapf_policy/action_selection.py) and
-seed (of this robot's own sampling generator; -1, the default, uses the robot id, so that no two robots
-draw the same noise and a run is repeatable).
+Parameters: robot_id, model_path, torch_threads, device; the action rule (mapf_policy/action_selection.py,
+defaults those of ActionRule): action_temperature (softmax sampling of the action, 0 = greedy argmax),
+backtrack_penalty (Q-value penalty on moving back to the previous step's cell, 0 = off; the node keeps
+its robot's previous cell) and mask_obstacle_moves; the paper's rule is action_temperature:=0
+backtrack_penalty:=0 mask_obstacle_moves:=false. seed: of this robot's own sampling generator; -1, the
+default, uses the robot id, so that no two robots draw the same noise and a run is repeatable.
 """
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ from mapf_msgs.msg import AgentAction, AgentObservation
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 
-from mapf_policy.action_selection import DEFAULT_ACTION_TEMPERATURE, check_action_temperature
+from mapf_policy.action_selection import ActionRule
 from mapf_world.fleet_core import resolve_robot_id
 from mapf_world.node_main import run_node
 
@@ -56,11 +58,14 @@ class PolicyNode(Node):
         self.declare_parameter("torch_threads", 1)
         self.declare_parameter("device", "cpu")
         # Dynamic typing: `-p action_temperature:=0` arrives as an integer and is still a valid temperature.
-        self.declare_parameter("action_temperature", DEFAULT_ACTION_TEMPERATURE,
-                               ParameterDescriptor(dynamic_typing=True))
+        default_rule = ActionRule()
+        for name in ("action_temperature", "backtrack_penalty"):
+            self.declare_parameter(name, getattr(default_rule, name), ParameterDescriptor(dynamic_typing=True))
+        self.declare_parameter("mask_obstacle_moves", default_rule.mask_obstacle_moves)
         self.declare_parameter("seed", -1)
         self.robot_id = resolve_robot_id(self.get_parameter("robot_id").value, self.get_namespace())
-        temperature = check_action_temperature(self.get_parameter("action_temperature").value)
+        rule = ActionRule(**{name: self.get_parameter(name).value
+                             for name in ("action_temperature", "backtrack_penalty", "mask_obstacle_moves")})
         seed = self.get_parameter("seed").value
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < -1:
             raise ValueError(f"parameter seed must be an integer >= 0, or -1 for the robot id; got {seed!r}")
@@ -75,16 +80,16 @@ class PolicyNode(Node):
         device = str(self.get_parameter("device").value)
         try:
             self.policy = Policy(str(model_path), num_threads=threads, device=device,
-                                 action_temperature=temperature, seed=seed)
+                                 rule=rule, seed=seed)
         except RuntimeError as exc:  # torch: unknown or unavailable device
             raise ValueError(f"cannot run the model on device {device!r}: {exc}") from exc
         self.fov_size = int(self.policy.network_config.fov_size)
         l = self.fov_size
         # Warm-up: the first forward pass is slow; do it before announcing the action publisher.
         self.policy.act(np.zeros((1, 6, l, l), np.float32), np.eye(5, dtype=np.float32)[:1], np.zeros((1, 2), np.float32))
-        self.policy.reseed(seed)  # the warm-up must not shift this robot's draws
-        self.get_logger().info(f"robot {self.robot_id}: model {model_path} (fov {l}, action temperature "
-                               f"{temperature}, seed {seed}) ready in {time.perf_counter() - t0:.2f} s")
+        self.policy.reset(seed)  # the warm-up must not shift this robot's draws nor leave a previous cell
+        self.get_logger().info(f"robot {self.robot_id}: model {model_path} (fov {l}, action rule "
+                               f"{rule.asdict()}, seed {seed}) ready in {time.perf_counter() - t0:.2f} s")
         self.action_pub = self.create_publisher(AgentAction, "action", 10)
         self.create_subscription(AgentObservation, "observation", self.on_observation, 10)
 

@@ -2,9 +2,9 @@
 
 Decentralised: every agent's action comes from its own observation row only. All agents go through
 the network in one batch for speed; the network has no cross-sample operation (no batch norm), so a
-row's Q-values do not depend on the other rows. With an action temperature above 0 every row draws its
-own Gumbel noise (action_selection.py); the generator restarts from `seed` at each case, so a case's
-result does not depend on which cases ran before it.
+row's Q-values do not depend on the other rows. The action rule (action_selection.py) works per row: its
+own Gumbel noise, its own previous cell. The policy resets at each case, the generator restarting from
+`seed`, so a case's result does not depend on which cases ran before it.
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapf_policy.action_selection import DEFAULT_ACTION_TEMPERATURE
+from mapf_policy.action_selection import RULE_FIELDS, make_rule
 from mapf_policy.config import ABLATIONS, NetworkConfig
 from mapf_policy.policy import Policy
 
@@ -31,26 +31,27 @@ def default_model_path(variant: str = "hscl") -> Path:
 
 
 class HsclSolver:
-    """Solver protocol: reset(env) plans nothing and restarts the sampling generator; act(obs) -> (N,) actions."""
+    """Solver protocol: reset(env) plans nothing and resets the policy (generator, memory); act(obs) -> (N,) actions."""
 
     def __init__(self, name: str, policy: Policy, seed: int, model_path: Path):
         self.name = name
         self.policy = policy
         self.seed = seed
         # What decides the results, for the evaluation report (options left at their defaults included).
-        self.settings = {"model": str(model_path), "action_temperature": policy.action_temperature, "seed": seed}
+        self.settings = {"model": str(model_path), **policy.rule.asdict(), "seed": seed}
 
     def reset(self, env) -> None:
         fov = env.fov_size
         if fov != self.policy.cfg.fov_size:
             raise ValueError(f"{self.name}: the environment's fov_size is {fov}, the model expects {self.policy.cfg.fov_size}")
-        self.policy.reseed(self.seed)
+        self.policy.reset(self.seed)
 
     def act(self, obs: dict) -> np.ndarray:
         return self.policy.act_obs(obs)
 
 
-OPTIONS = ("num_threads", "action_temperature", "seed")
+# action_rule: a named rule ("default" or "paper"), whose fields the other rule options then replace.
+OPTIONS = ("num_threads", "seed", "action_rule") + RULE_FIELDS
 
 
 def _check_options(name: str, options: dict) -> None:
@@ -69,8 +70,11 @@ def _load(name: str, model, expected: dict, options: dict) -> HsclSolver:
         raise FileNotFoundError(
             f"solver {name}: model file {path} does not exist (train one with scripts/train, or pass model=PATH)"
         )
-    policy = Policy(path, num_threads=int(options.get("num_threads", 1)),
-                    action_temperature=options.get("action_temperature", DEFAULT_ACTION_TEMPERATURE), seed=int(seed))
+    try:
+        rule = make_rule(options.get("action_rule", "default"), **{k: options[k] for k in RULE_FIELDS if k in options})
+    except ValueError as exc:
+        raise ValueError(f"solver {name}: {exc}") from exc
+    policy = Policy(path, num_threads=int(options.get("num_threads", 1)), rule=rule, seed=int(seed))
     wrong = {k: getattr(policy.cfg, k) for k, v in expected.items() if getattr(policy.cfg, k) != v}
     if wrong:
         raise ValueError(f"solver {name}: model {path} has {wrong}, but this variant needs {expected}")
@@ -80,8 +84,9 @@ def _load(name: str, model, expected: dict, options: dict) -> HsclSolver:
 def make_hscl(model=None, **options) -> HsclSolver:
     """The paper's policy; `model` defaults to <repo>/models/hscl.pt.
 
-    Options: action_temperature (default DEFAULT_ACTION_TEMPERATURE; 0 = the paper's greedy argmax),
-    seed (of the per-case sampling generator, default 0), num_threads (torch, default 1).
+    Options: action_rule ("default", or "paper": greedy argmax and nothing else), and any ActionRule field
+    to replace (action_temperature, backtrack_penalty, mask_obstacle_moves, settled_greedy); seed (of
+    the per-case sampling generator, default 0); num_threads (torch, default 1).
     """
     full = {k: getattr(NetworkConfig(), k) for k in ("self_attention", "channel_attention", "spatial_attention")}
     return _load("hscl", model, full, options)

@@ -155,9 +155,16 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                    help="solver option (planning seconds per case)")
     p.add_argument("--model", type=Path, default=None, metavar="PATH", help="solver option (policy weights)")
+    p.add_argument("--action-rule", default=None, metavar="NAME",
+                   help="solver option (learned policies): 'default' (sampled, the shipped rule) or 'paper' "
+                        "(greedy argmax only); the options below replace single fields of it")
     p.add_argument("--action-temperature", type=float, default=None, metavar="T",
                    help="solver option (learned policies): sample actions from softmax(Q/T); 0 = greedy argmax "
                         "(default: the solver's own, see its settings in the JSON)")
+    p.add_argument("--backtrack-penalty", type=float, default=None, metavar="P",
+                   help="solver option (learned policies): Q-value penalty on moving back to the previous cell; 0 = off")
+    p.add_argument("--mask-obstacle-moves", default=None, action=argparse.BooleanOptionalAction,
+                   help="solver option (learned policies): never choose a move into an obstacle or off the map")
     p.add_argument("--seed", type=int, default=None, metavar="S",
                    help="solver option (learned policies): seed of the action sampling, restarted at each case")
     args = p.parse_args(argv)
@@ -175,7 +182,9 @@ def _trajectory_path(out: Path, source: Path, several: bool) -> Path:
 def main(argv=None) -> int:
     args = parse_args(argv)
     options = {k: v for k, v in (("epsilon", args.epsilon), ("time_limit", args.time_limit), ("model", args.model),
-                                 ("action_temperature", args.action_temperature), ("seed", args.seed))
+                                 ("action_rule", args.action_rule), ("action_temperature", args.action_temperature),
+                                 ("backtrack_penalty", args.backtrack_penalty),
+                                 ("mask_obstacle_moves", args.mask_obstacle_moves), ("seed", args.seed))
                if v is not None}
     try:
         solver = get_solver(args.solver, **options)

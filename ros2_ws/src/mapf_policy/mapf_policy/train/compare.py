@@ -1,10 +1,11 @@
 """Compare model files on generated held-out cases (never benchmark cases): `scripts/compare_models`.
 
 For ablations and snapshot choice. Every model meets the same cases: seed stream COMPARE_STREAM,
-apart from the demonstration, actor and validation streams, so no model trained on them. Greedy
-actions by default (--action-temperature 0); with T > 0 actions are drawn as by `scripts/evaluate
---solver hscl --action-temperature T`, the generator restarting from --sample-seed at each case. The
-benchmark's rules and step limit; average step counts the limit for a failed case.
+apart from the demonstration, actor and validation streams, so no model trained on them. Actions by
+the paper's greedy rule by default (--action-rule paper, so that snapshot tables stay comparable); with
+another rule they are chosen as by `scripts/evaluate --solver hscl` with the same rule options, the
+generator restarting from --sample-seed at each case. The benchmark's rules and step limit; average step
+counts the limit for a failed case.
   scripts/compare_models models/hscl.pt runs/*/last.pt --sizes 4 8 16 --cases 25 --json out.json
 """
 from __future__ import annotations
@@ -17,7 +18,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from mapf_policy.action_selection import check_action_temperature
+from mapf_policy.action_selection import PAPER_RULE, ActionRule, make_rule
 from mapf_policy.model_io import load_model
 from mapf_policy.network import QNetwork
 from mapf_policy.policy import Policy
@@ -31,11 +32,10 @@ def held_out_cases(sizes, cases: int, seed: int, map_size: int, density: float) 
     return generated_cases(seed, COMPARE_STREAM, sizes, cases, map_size, density)
 
 
-def evaluate_sampled(net: QNetwork, path, instances: list, max_steps: int, action_temperature: float,
-                     sample_seed: int, progress: bool, settled_greedy: bool = True) -> dict:
-    """Like evaluate_by_size, with actions drawn through the evaluation solver (same dict layout)."""
-    policy = Policy(net, num_threads=None, action_temperature=action_temperature, seed=sample_seed,
-                    settled_greedy=settled_greedy)
+def evaluate_with_rule(net: QNetwork, path, instances: list, max_steps: int, rule: ActionRule,
+                       sample_seed: int, progress: bool) -> dict:
+    """Like evaluate_by_size, with actions chosen by `rule` through the evaluation solver (same dict layout)."""
+    policy = Policy(net, num_threads=None, rule=rule, seed=sample_seed)
     solver = HsclSolver("hscl", policy, sample_seed, Path(path))
     desc = Path(path).parent.name + "/" + Path(path).name
     outcomes = []
@@ -46,17 +46,15 @@ def evaluate_sampled(net: QNetwork, path, instances: list, max_steps: int, actio
 
 
 def compare(paths, sizes, cases: int, seed: int = 0, map_size: int = 40, density: float = 0.3,
-            max_steps: int = 256, progress: bool = True, action_temperature: float = 0.0,
-            sample_seed: int = 0, settled_greedy: bool = True) -> dict:
+            max_steps: int = 256, progress: bool = True, rule: ActionRule = PAPER_RULE,
+            sample_seed: int = 0) -> dict:
     """{model path: {team size: {success_rate, average_step, successes, cases}}}."""
-    action_temperature = check_action_temperature(action_temperature)
     instances = held_out_cases(sizes, cases, seed, map_size, density)
     out = {}
     for path in paths:
         net, ncfg, _ = load_model(path)  # raises a clear error for a missing, corrupt or foreign file
-        if action_temperature > 0:
-            out[str(path)] = evaluate_sampled(net, path, instances, max_steps, action_temperature, sample_seed,
-                                              progress, settled_greedy)
+        if rule != PAPER_RULE:
+            out[str(path)] = evaluate_with_rule(net, path, instances, max_steps, rule, sample_seed, progress)
             continue
         net = net.to(memory_format=torch.channels_last).eval()
         out[str(path)] = evaluate_by_size(net, instances, ncfg.fov_size, max_steps, progress,
@@ -84,8 +82,15 @@ def main(argv=None) -> int:
     p.add_argument("--density", type=float, default=0.3)
     p.add_argument("--max-steps", type=int, default=256)
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    p.add_argument("--action-temperature", type=float, default=0.0, metavar="T",
-                   help="sample actions from softmax(Q/T) as scripts/evaluate does; 0 = greedy (default)")
+    p.add_argument("--action-rule", default="paper", metavar="NAME",
+                   help="'paper' (greedy argmax only, the default here) or 'default' (the shipped sampled rule); "
+                        "the options below replace single fields of it")
+    p.add_argument("--action-temperature", type=float, default=None, metavar="T",
+                   help="sample actions from softmax(Q/T) as scripts/evaluate does; 0 = greedy")
+    p.add_argument("--backtrack-penalty", type=float, default=None, metavar="P",
+                   help="Q-value penalty on the move back to the previous step's cell; 0 = off")
+    p.add_argument("--mask-obstacle-moves", default=None, action=argparse.BooleanOptionalAction,
+                   help="never choose a move into a static obstacle or off the map")
     p.add_argument("--sample-seed", type=int, default=0, metavar="S",
                    help="seed of the action sampling, restarted at each case (default 0)")
     p.add_argument("--sample-settled", action="store_true",
@@ -101,19 +106,22 @@ def main(argv=None) -> int:
     if missing:
         p.error(f"no such model file: {', '.join(missing)}")
     torch.set_num_threads(args.threads)
+    overrides = {k: v for k, v in (("action_temperature", args.action_temperature),
+                                   ("backtrack_penalty", args.backtrack_penalty),
+                                   ("mask_obstacle_moves", args.mask_obstacle_moves)) if v is not None}
+    if args.sample_settled:
+        overrides["settled_greedy"] = False
     try:
+        rule = make_rule(args.action_rule, **overrides)
         results = compare(args.models, args.sizes, args.cases, args.seed, args.map_size, args.density,
-                          args.max_steps, progress=not args.no_progress,
-                          action_temperature=args.action_temperature, sample_seed=args.sample_seed,
-                          settled_greedy=not args.sample_settled)
+                          args.max_steps, progress=not args.no_progress, rule=rule, sample_seed=args.sample_seed)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(markdown(results, args.sizes))
     if args.json:
         args.json.write_text(json.dumps({"sizes": args.sizes, "cases": args.cases, "seed": args.seed,
-                                         "action_temperature": args.action_temperature,
-                                         "sample_seed": args.sample_seed, "sample_settled": args.sample_settled,
+                                         "action_rule": rule.asdict(), "sample_seed": args.sample_seed,
                                          "results": results}, indent=1))
     return 0
 
