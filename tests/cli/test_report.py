@@ -209,6 +209,25 @@ def test_cli_errors(repo_root, tmp_path):
     assert not (tmp_path / "x.pdf").exists()
 
 
+def test_cli_labels_name_a_file_s_rows(repo_root, tmp_path):
+    script = str(repo_root / "scripts" / "report")
+    rows = lambda: [_file_row(f"{DHC}/agents_04.npz", 4, [_case(40, True, 100)])]  # noqa: E731
+    a = _write(tmp_path / "a.json", _evaluation("hscl", rows(), options={"action_temperature": "0.04"}))
+    b = _write(tmp_path / "b.json", _evaluation("hscl", rows()))
+    proc = subprocess.run([script, str(a), str(b), "--label", f"{a}=hscl, fourth-session rule"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    solvers = [r["solver"] for r in _tables(proc.stdout)["dhc_40x40_d0.3"]]
+    assert solvers == ["hscl, fourth-session rule", "hscl"]
+    for spec, message in ((f"{tmp_path / 'c.json'}=x", "is not one of the JSON files given"),
+                          (str(a), "expected EVAL.json=LABEL"), (f"{a}= ", "expected EVAL.json=LABEL")):
+        bad = subprocess.run([script, str(a), "--label", spec], capture_output=True, text=True, timeout=120)
+        assert bad.returncode == 2 and message in bad.stderr, bad.stderr
+    # Two files under one label with the same team size would make one row ambiguous: refused.
+    same = subprocess.run([script, str(a), str(b), "--label", f"{a}=hscl"], capture_output=True, text=True, timeout=120)
+    assert same.returncode == 2 and "appears twice" in same.stderr
+
+
 # --- end to end: scripts/evaluate then scripts/report ------------------------------------------------
 def test_cli_report_on_greedy_benchmark_runs(repo_root, benchmark_dir, tmp_path):
     source = benchmark_dir / "dhc_40x40_d0.3"

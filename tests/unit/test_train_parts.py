@@ -125,6 +125,20 @@ def test_actor_episode_relabels_and_evaluation_reports_per_size():
     assert set(result["sizes"]) == {"2"} and 0.0 <= result["sizes"]["2"]["success_rate"] <= 1.0
 
 
+def test_actor_episode_can_sample_actions_like_the_evaluated_policy():
+    torch.manual_seed(0)
+    net = QNetwork().eval()
+    runs = {}
+    for t in (0.0, 100.0):
+        env = _env(n=2)
+        rec, _ = run_episode(net, env, 0.0, np.random.default_rng(0), action_temperature=t)
+        runs[t] = rec.arrays()["action"]
+    # epsilon 0: argmax actions are one fixed function of the state, near-uniform draws are not.
+    assert len(set(runs[100.0].tolist())) >= 4 and not np.array_equal(runs[0.0][: len(runs[100.0])], runs[100.0][: len(runs[0.0])])
+    with pytest.raises(ValueError, match="actor_action_temperature must be a finite number >= 0"):
+        TrainConfig(actor_action_temperature=-0.1).validate()
+
+
 def test_schedules():
     cfg = TrainConfig(eps_start=0.3, eps_end=0.1, eps_decay_steps=100, curriculum_start_agents=8,
                       max_agents=64, curriculum_steps=100)

@@ -6,6 +6,7 @@ through plain dicts (`asdict` / `from_dict`), which is how they are stored in mo
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 
@@ -180,6 +181,10 @@ class TrainConfig:
     """Epsilon after eps_decay_steps (kept constant afterwards)."""
     eps_decay_steps: int = 50_000
     """Learner steps of the linear epsilon decay."""
+    actor_action_temperature: float = 0.0
+    """Actors' choice of the non-random actions: 0 = argmax (epsilon-greedy, the paper); T > 0 = draws from
+    softmax(Q / T) with settled agents greedy, as the evaluated policy does (action_selection.py), so that
+    training visits the states the sampled policy meets. Epsilon applies on top."""
     relabel_fraction: float = 0.5
     """Share of actor episodes whose visited states get expert (ODrM*) labels for HSCL."""
     relabel_time_budget: float = 5.0
@@ -247,6 +252,8 @@ class TrainConfig:
         need(self.expert in ("odrmstar", "shortest_path"), f"expert must be odrmstar or shortest_path, got {self.expert!r}")
         need(self.eval_minutes >= 0, f"eval_minutes must be >= 0, got {self.eval_minutes}")
         need(self.max_replay_ratio >= 0, f"max_replay_ratio must be >= 0, got {self.max_replay_ratio}")
+        need(math.isfinite(self.actor_action_temperature) and self.actor_action_temperature >= 0,
+             f"actor_action_temperature must be a finite number >= 0, got {self.actor_action_temperature}")
         need(self.session_minutes >= 0, f"session_minutes must be >= 0, got {self.session_minutes}")
         need(len(self.eval_sizes) >= 1 and all(int(n) >= 1 for n in self.eval_sizes), f"bad eval_sizes {self.eval_sizes}")
         need(self.fov_size >= 9 and self.fov_size % 2 == 1, f"fov_size must be odd and >= 9, got {self.fov_size}")

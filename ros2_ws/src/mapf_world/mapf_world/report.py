@@ -12,6 +12,7 @@ The module is pure apart from `plot_comparison` (matplotlib, Agg backend, import
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -218,14 +219,32 @@ def load_evaluation(path, variant: Optional[str] = None) -> List[Entry]:
     return parse_evaluation(data, str(path), variant)
 
 
-def load_evaluations(paths: Sequence, variant: Optional[str] = None) -> List[Entry]:
-    """Entries of several JSON files; the same solver, variant and team size twice is an error."""
+def parse_labels(specs: Sequence[str], paths: Sequence) -> Dict[str, str]:
+    """{JSON path: label} from "PATH=LABEL" strings; PATH must be one of `paths`."""
+    known = {str(Path(p)) for p in paths}
+    labels: Dict[str, str] = {}
+    for spec in specs:
+        path, sep, label = spec.partition("=")
+        if not sep or not label.strip():
+            raise ValueError(f"--label {spec!r}: expected EVAL.json=LABEL")
+        if str(Path(path)) not in known:
+            raise ValueError(f"--label {spec!r}: {path} is not one of the JSON files given")
+        labels[str(Path(path))] = label.strip()
+    return labels
+
+
+def load_evaluations(paths: Sequence, variant: Optional[str] = None,
+                     labels: Optional[Dict[str, str]] = None) -> List[Entry]:
+    """Entries of several JSON files; the same solver, variant and team size twice is an error. `labels`
+    ({path: text}) replaces the label made from a file's solver and options."""
     if variant is not None and variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}; known variants: {', '.join(VARIANTS)}")
     entries: List[Entry] = []
     seen: Dict[tuple, Entry] = {}
     for path in paths:
         for e in load_evaluation(path, variant):
+            if labels and str(Path(path)) in labels:
+                e = dataclasses.replace(e, label=labels[str(Path(path))])
             key = (e.variant, e.label, e.agents)
             if key in seen:
                 other = seen[key]
@@ -476,13 +495,15 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--plot", type=Path, default=None, metavar="FILE.png", help="write the two-panel picture here")
     p.add_argument("--variant", default=None, choices=VARIANTS,
                    help="benchmark variant of files whose instance path names none")
+    p.add_argument("--label", action="append", default=[], metavar="EVAL.json=LABEL",
+                   help="name a file's rows LABEL instead of its solver and options (repeatable)")
     return p.parse_args(argv)
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
     try:
-        entries = load_evaluations(args.json, args.variant)
+        entries = load_evaluations(args.json, args.variant, parse_labels(args.label, args.json))
         if args.plot is not None and args.plot.suffix.lower() != ".png":
             raise ValueError(f"--plot {args.plot}: the picture is a PNG; name it *.png")
         text = render_markdown(entries)

@@ -1,4 +1,4 @@
-"""Actor process: epsilon-greedy episodes in generated worlds, expert relabelling, greedy validation.
+"""Actor process: epsilon-greedy (or sampled) episodes in generated worlds, expert relabelling, greedy validation.
 
 Each actor runs in its own process (spawn) beside the learner, so that data generation and learning
 overlap: one thread each (on this 2-core machine one actor; on a many-core GPU machine, one per spare
@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from mapf_world.env import MapfEnv
 from mapf_world.instances import generate_instance
+from mapf_policy.action_selection import select_actions, settled
 from mapf_policy.config import TrainConfig
 from mapf_policy.model_io import save_model
 from mapf_policy.network import QNetwork
@@ -53,15 +54,24 @@ def greedy_q(net: QNetwork, obs: dict) -> np.ndarray:
 
 
 def run_episode(net: QNetwork, env: MapfEnv, epsilon: float, rng: np.random.Generator,
-                oracle=None, oracle_budget: float = 0.0, record: bool = True) -> tuple[EpisodeRecorder, dict]:
-    """One episode; with `oracle`, states get expert labels until it fails or its time budget is spent."""
+                oracle=None, oracle_budget: float = 0.0, record: bool = True,
+                action_temperature: float = 0.0) -> tuple[EpisodeRecorder, dict]:
+    """One episode; with `oracle`, states get expert labels until it fails or its time budget is spent.
+
+    Each agent takes a uniformly random action with probability `epsilon`, else the argmax of its
+    Q-values (action_temperature 0) or a draw from softmax(Q / T) with settled agents greedy (T > 0).
+    """
     obs, _ = env.reset()
     rec = EpisodeRecorder()
     labelled = oracle_time = 0.0
     oracle_failure = ""
     terminated = truncated = False
     while not (terminated or truncated):
-        actions = greedy_q(net, obs).argmax(axis=1)
+        q = greedy_q(net, obs)
+        if action_temperature > 0:
+            actions = select_actions(q, action_temperature, rng, greedy_rows=settled(obs["fov"]))
+        else:
+            actions = q.argmax(axis=1)
         explore = rng.random(env.n_agents) < epsilon
         actions[explore] = rng.integers(0, 5, int(explore.sum()))
         expert = None
@@ -193,7 +203,8 @@ def actor_main(cfg_dict: dict, run_dir: str, start_episode: int, weights_q, data
             limit = min(cfg.expert_time_limit, cfg.relabel_time_budget)
             oracle = make_oracle(cfg.expert, env.grid, env.goals, env.dist, cfg.expert_epsilon, limit)
         eps = epsilon_at(cfg, step)
-        rec, stats = run_episode(net, env, eps, rng, oracle, cfg.relabel_time_budget)
+        rec, stats = run_episode(net, env, eps, rng, oracle, cfg.relabel_time_budget,
+                                 action_temperature=cfg.actor_action_temperature)
         stats.update(epsilon=eps, weights_step=weights_step)
         transitions = rec.arrays()
         produced += len(transitions["action"])
