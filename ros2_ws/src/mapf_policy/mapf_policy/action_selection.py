@@ -53,14 +53,19 @@ DEFAULT_ACTION_TEMPERATURE = 0.04
 DEFAULT_BACKTRACK_PENALTY = 0.05
 
 
-def check_action_temperature(value) -> float:
-    """T >= 0 as a float; 0 means greedy. Anything else is an error naming the value."""
+def _non_negative(value, name: str, zero: str) -> float:
+    """value >= 0 as a float; anything else is an error naming `name`, the value and what 0 means."""
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ValueError(f"action_temperature must be a number >= 0 (0 = greedy), got {value!r}")
-    t = float(value)
-    if not math.isfinite(t) or t < 0:
-        raise ValueError(f"action_temperature must be a finite number >= 0 (0 = greedy), got {value!r}")
-    return t
+        raise ValueError(f"{name} must be a number >= 0 (0 = {zero}), got {value!r}")
+    v = float(value)
+    if not math.isfinite(v) or v < 0:
+        raise ValueError(f"{name} must be a finite number >= 0 (0 = {zero}), got {value!r}")
+    return v
+
+
+def check_action_temperature(value) -> float:
+    """T >= 0 as a float; 0 means greedy."""
+    return _non_negative(value, "action_temperature", "greedy")
 
 
 def _check_fov(fov) -> np.ndarray:
@@ -117,12 +122,7 @@ def select_actions(q: np.ndarray, action_temperature: float, rng: np.random.Gene
 
 def check_backtrack_penalty(value) -> float:
     """penalty >= 0 as a float (Q-value units); 0 turns the rule off."""
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ValueError(f"backtrack_penalty must be a number >= 0 (0 = off), got {value!r}")
-    p = float(value)
-    if not math.isfinite(p) or p < 0:
-        raise ValueError(f"backtrack_penalty must be a finite number >= 0 (0 = off), got {value!r}")
-    return p
+    return _non_negative(value, "backtrack_penalty", "off")
 
 
 @dataclass(frozen=True)
