@@ -68,6 +68,11 @@ def check_action_temperature(value) -> float:
     return _non_negative(value, "action_temperature", "greedy")
 
 
+def check_backtrack_penalty(value) -> float:
+    """penalty >= 0 as a float (Q-value units); 0 turns the rule off."""
+    return _non_negative(value, "backtrack_penalty", "off")
+
+
 def _check_fov(fov) -> np.ndarray:
     fov = np.asarray(fov)
     if fov.ndim != 4 or fov.shape[1] != 6 or fov.shape[2] != fov.shape[3] or fov.shape[2] < 3:
@@ -118,11 +123,6 @@ def select_actions(q: np.ndarray, action_temperature: float, rng: np.random.Gene
             raise ValueError(f"greedy_rows must have shape ({q.shape[0]},), got {greedy_rows.shape}")
         actions[greedy_rows] = q[greedy_rows].argmax(axis=1)
     return actions
-
-
-def check_backtrack_penalty(value) -> float:
-    """penalty >= 0 as a float (Q-value units); 0 turns the rule off."""
-    return _non_negative(value, "backtrack_penalty", "off")
 
 
 @dataclass(frozen=True)

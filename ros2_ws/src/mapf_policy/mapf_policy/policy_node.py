@@ -29,6 +29,8 @@ from mapf_world.fleet_core import resolve_robot_id
 from mapf_world.node_main import run_node
 
 DEFAULT_MODEL = "models/hscl.pt"
+# The ActionRule fields a robot can set (settled_greedy is an ablation of scripts/compare_models only).
+RULE_PARAMETERS = ("action_temperature", "backtrack_penalty", "mask_obstacle_moves")
 
 
 def resolve_model_path(value: str) -> Path:
@@ -59,13 +61,12 @@ class PolicyNode(Node):
         self.declare_parameter("device", "cpu")
         # Dynamic typing: `-p action_temperature:=0` arrives as an integer and is still a valid temperature.
         default_rule = ActionRule()
-        for name in ("action_temperature", "backtrack_penalty"):
-            self.declare_parameter(name, getattr(default_rule, name), ParameterDescriptor(dynamic_typing=True))
-        self.declare_parameter("mask_obstacle_moves", default_rule.mask_obstacle_moves)
+        for name in RULE_PARAMETERS:
+            typing = ParameterDescriptor(dynamic_typing=not isinstance(getattr(default_rule, name), bool))
+            self.declare_parameter(name, getattr(default_rule, name), typing)
         self.declare_parameter("seed", -1)
         self.robot_id = resolve_robot_id(self.get_parameter("robot_id").value, self.get_namespace())
-        rule = ActionRule(**{name: self.get_parameter(name).value
-                             for name in ("action_temperature", "backtrack_penalty", "mask_obstacle_moves")})
+        rule = ActionRule(**{name: self.get_parameter(name).value for name in RULE_PARAMETERS})
         seed = self.get_parameter("seed").value
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < -1:
             raise ValueError(f"parameter seed must be an integer >= 0, or -1 for the robot id; got {seed!r}")

@@ -67,11 +67,8 @@ def run_episode(net: QNetwork, env: MapfEnv, epsilon: float, rng: np.random.Gene
     oracle_failure = ""
     terminated = truncated = False
     while not (terminated or truncated):
-        q = greedy_q(net, obs)
-        if action_temperature > 0:
-            actions = select_actions(q, action_temperature, rng, greedy_rows=settled(obs["fov"]))
-        else:
-            actions = q.argmax(axis=1)
+        rows = settled(obs["fov"]) if action_temperature > 0 else None
+        actions = select_actions(greedy_q(net, obs), action_temperature, rng, greedy_rows=rows)
         explore = rng.random(env.n_agents) < epsilon
         actions[explore] = rng.integers(0, 5, int(explore.sum()))
         expert = None
