@@ -4,8 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from mapf_world.fleet_core import (OUTCOME_BLOCKED, OUTCOME_OK, OUTCOME_REJECTED, OUTCOME_TIMEOUT, FleetCore,
-                                   Phase, State, common_drive_start, describe_moves, xy_to_cell, cell_to_xy)
+from mapf_world.fleet_core import (OUTCOME_BLOCKED, OUTCOME_OK, OUTCOME_REJECTED, OUTCOME_TIMEOUT, Deadline,
+                                   FleetCore, Phase, State, common_drive_start, describe_moves, xy_to_cell,
+                                   cell_to_xy)
 from mapf_world.grid import DOWN, LEFT, RIGHT, STAY
 
 GRID = np.array([[0, 0, 0, 0],
@@ -202,3 +203,15 @@ def test_last_actions_are_the_requested_ones_as_in_mapf_env():
     env.step([DOWN, RIGHT])
     assert core.last_actions.tolist() == env.last_actions.tolist() == [DOWN, RIGHT]
     assert core.positions.tolist() == env.positions.tolist()
+
+
+def test_deadline_is_enforced_on_the_second_tick_past_it():
+    d = Deadline()
+    assert not d.expired(1e9)                      # never set: no limit
+    d.set(10.0, 0.4)
+    assert not d.expired(10.39)                    # before the limit
+    assert not d.expired(11.5)                     # first tick past it (e.g. waking from a stall)
+    assert d.expired(11.51)                        # the next tick: queued inputs had their turn
+    assert d.expired(11.52)
+    d.set(20.0, 1.0)                               # a new limit forgets the old one
+    assert not d.expired(21.0) and d.expired(21.01)

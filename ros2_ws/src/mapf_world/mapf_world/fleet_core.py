@@ -45,6 +45,33 @@ class Phase(IntEnum):
     DONE = 3
 
 
+class Deadline:
+    """A time limit that a periodic tick enforces only when it has seen it passed on the tick before.
+
+    An event loop that wakes from a stall (CPU starvation, a blocking call) finds the limit passed and the
+    inputs that arrived in time still queued; rclpy runs a wait's ready timers before its ready
+    subscriptions, so the first tick would judge before them. One more tick lets them in; it costs at most
+    one tick period on a real timeout. Times are time.monotonic() seconds.
+    """
+
+    def __init__(self):
+        self.at = math.inf
+        self._seen_passed = False
+
+    def set(self, now: float, seconds: float) -> None:
+        self.at = now + seconds
+        self._seen_passed = False
+
+    def expired(self, now: float) -> bool:
+        """Call once per tick: True from the second tick at or after the limit."""
+        if now < self.at:
+            return False
+        if self._seen_passed:
+            return True
+        self._seen_passed = True
+        return False
+
+
 @dataclass(frozen=True)
 class Verdict:
     """What happened to one offered action message."""

@@ -30,8 +30,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from visualization_msgs.msg import MarkerArray
 
 from mapf_world import fleet_msgs
-from mapf_world.fleet_core import (INSTANCE_SOURCES, FleetCore, Phase, State, common_drive_start, describe_moves,
-                                   load_fleet_instance, pose_error)
+from mapf_world.fleet_core import (INSTANCE_SOURCES, Deadline, FleetCore, Phase, State, common_drive_start,
+                                   describe_moves, load_fleet_instance, pose_error)
 from mapf_world.node_main import create_node
 from mapf_world.observation import ObservationBuilder
 
@@ -66,7 +66,7 @@ class WorldNode(Node):
         self.cell_size = p["cell_size"]
         self.tracks = [RobotTrack() for _ in range(self.n)]
         self.step_started = None
-        self.deadline = None
+        self.deadline = Deadline()   # of the current phase: actions in, or robots settled
         self.step_walls = []      # wall s per step: observations out -> every robot settled
         self.action_walls = []    # wall s per step: observations out -> actions closed (all in, or timeout)
         self.t_start = time.monotonic()
@@ -94,7 +94,7 @@ class WorldNode(Node):
             self.initial_pubs = [self.create_publisher(PoseWithCovarianceStamped, f"{n}/initialpose", LATCHED) for n in ns]
             for i in range(self.n):
                 self.initial_pubs[i].publish(fleet_msgs.initial_pose(inst.starts[i], self.cell_size, self.header()))
-        self.create_timer(0.01, self.update)
+        self.create_timer(0.01, self.tick)
         self.create_timer(p["marker_period_s"], self.publish_markers)
         self.get_logger().info(
             f"instance {inst.name}: {inst.grid.shape[0]}x{inst.grid.shape[1]} map, {self.n} robots, "
@@ -173,7 +173,11 @@ class WorldNode(Node):
             t.in_tolerance_since = now
         return now - t.in_tolerance_since >= self.params["settle_hold_s"]
 
-    def update(self) -> None:
+    def tick(self) -> None:
+        """The periodic timer: the only place where deadlines are enforced (see fleet_core.Deadline)."""
+        self.update(tick=True)
+
+    def update(self, tick: bool = False) -> None:
         if self.finished:
             return
         now = time.monotonic()
@@ -181,13 +185,13 @@ class WorldNode(Node):
         if core.state == State.WAITING:
             self._wait_for_robots(now)
         elif core.phase == Phase.COLLECTING:
-            if core.all_answered() or now >= self.deadline:
+            if core.all_answered() or (tick and self.deadline.expired(now)):
                 self._send_moves(now)
         elif core.phase == Phase.SETTLING:
             moves = core.pending
             if all(self._settled(i, moves.to_cells[i], now) for i in range(self.n)):
                 self._complete_step(now)
-            elif now >= self.deadline:
+            elif tick and self.deadline.expired(now):
                 late = [i for i in range(self.n) if not self._settled(i, moves.to_cells[i], now)]
                 where = "; ".join(self._where(i, moves.to_cells[i]) for i in late)
                 self._finish(f"settle timeout: robots {late} not settled on their cells within "
@@ -235,10 +239,11 @@ class WorldNode(Node):
         core = self.core
         step = core.begin_step()
         self.step_started = now
-        self.deadline = now + self.params["action_timeout_s"]
         obs = self.builder.build(core.positions, core.last_actions)
         for i, msg in enumerate(fleet_msgs.observations(obs, core, self.header())):
             self.obs_pubs[i].publish(msg)
+        # The robots' time starts when the last observation is out, not before a slow publish.
+        self.deadline.set(time.monotonic(), self.params["action_timeout_s"])
 
     def _send_moves(self, now: float) -> None:
         core = self.core
@@ -254,7 +259,7 @@ class WorldNode(Node):
             drive_start = common_drive_start(yaws, moves.from_cells, moves.to_cells, self.params["max_angular_speed"])
         for i, msg in enumerate(fleet_msgs.cell_moves(moves, self.cell_size, drive_start, self.header())):
             self.move_pubs[i].publish(msg)
-        self.deadline = now + self.params["settle_timeout_s"]
+        self.deadline.set(time.monotonic(), self.params["settle_timeout_s"])
 
     def _complete_step(self, now: float) -> None:
         moves = self.core.pending
