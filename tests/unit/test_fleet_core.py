@@ -205,13 +205,19 @@ def test_last_actions_are_the_requested_ones_as_in_mapf_env():
     assert core.positions.tolist() == env.positions.tolist()
 
 
-def test_deadline_is_enforced_on_the_second_tick_past_it():
-    d = Deadline()
-    assert not d.expired(1e9)                      # never set: no limit
+def test_deadline_holds_on_ticks_and_gives_grace_after_a_stall_of_its_process():
+    d = Deadline(stall_s=0.1, grace_s=0.1)
+    assert not d.expired(5.0)                      # never set: no limit
     d.set(10.0, 0.4)
-    assert not d.expired(10.39)                    # before the limit
-    assert not d.expired(11.5)                     # first tick past it (e.g. waking from a stall)
-    assert d.expired(11.51)                        # the next tick: queued inputs had their turn
-    assert d.expired(11.52)
-    d.set(20.0, 1.0)                               # a new limit forgets the old one
-    assert not d.expired(21.0) and d.expired(21.01)
+    ticks = [10.0 + 0.01 * k for k in range(1, 41)]
+    assert not any(d.expired(t) for t in ticks[:-1])
+    assert d.expired(10.41)                        # regular ticks: due at the first tick past the limit
+    d.set(20.0, 0.4)
+    assert not d.expired(20.01)
+    assert not d.expired(21.0)                     # ticks stopped for 1 s across the limit: grace
+    assert not d.expired(21.05)
+    assert d.expired(21.1)                         # grace over
+    d.set(30.0, 0.4)
+    for t in (30.15, 30.3, 30.45):                 # slow at every tick: one grace only, then due
+        assert not d.expired(t)
+    assert d.expired(30.6)

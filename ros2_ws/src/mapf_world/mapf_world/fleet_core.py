@@ -46,30 +46,35 @@ class Phase(IntEnum):
 
 
 class Deadline:
-    """A time limit that a periodic tick enforces only when it has seen it passed on the tick before.
+    """A time limit checked on the ticks of a periodic timer, that does not count a stall of its own process.
 
-    An event loop that wakes from a stall (CPU starvation, a blocking call) finds the limit passed and the
-    inputs that arrived in time still queued; rclpy runs a wait's ready timers before its ready
-    subscriptions, so the first tick would judge before them. One more tick lets them in; it costs at most
-    one tick period on a real timeout. Times are time.monotonic() seconds.
+    When the limit passes while the process does not run (a gap between two ticks longer than `stall_s`:
+    CPU starvation, a blocking call, SIGSTOP), the inputs that arrived in time are still queued, in the
+    middleware or behind the tick (rclpy runs a wait's ready timers before its ready subscriptions). So the
+    limit then moves to `grace_s` after that tick, once per limit; a process that is slow at every tick
+    still enforces it. Times are time.monotonic() seconds.
     """
 
-    def __init__(self):
+    def __init__(self, stall_s: float = 0.1, grace_s: float = 0.1):
+        self.stall_s, self.grace_s = stall_s, grace_s
         self.at = math.inf
-        self._seen_passed = False
+        self._extended = False
+        self._last_tick = None
 
     def set(self, now: float, seconds: float) -> None:
         self.at = now + seconds
-        self._seen_passed = False
+        self._extended = False
 
     def expired(self, now: float) -> bool:
-        """Call once per tick: True from the second tick at or after the limit."""
+        """Call on every tick, with the tick's time."""
+        last, self._last_tick = self._last_tick, now
         if now < self.at:
             return False
-        if self._seen_passed:
-            return True
-        self._seen_passed = True
-        return False
+        if not self._extended and last is not None and last < self.at and now - last > self.stall_s:
+            self.at = now + self.grace_s
+            self._extended = True
+            return False
+        return True
 
 
 @dataclass(frozen=True)

@@ -175,9 +175,9 @@ class WorldNode(Node):
 
     def tick(self) -> None:
         """The periodic timer: the only place where deadlines are enforced (see fleet_core.Deadline)."""
-        self.update(tick=True)
+        self.update(expired=self.deadline.expired(time.monotonic()))
 
-    def update(self, tick: bool = False) -> None:
+    def update(self, expired: bool = False) -> None:
         if self.finished:
             return
         now = time.monotonic()
@@ -185,13 +185,13 @@ class WorldNode(Node):
         if core.state == State.WAITING:
             self._wait_for_robots(now)
         elif core.phase == Phase.COLLECTING:
-            if core.all_answered() or (tick and self.deadline.expired(now)):
+            if core.all_answered() or expired:
                 self._send_moves(now)
         elif core.phase == Phase.SETTLING:
             moves = core.pending
             if all(self._settled(i, moves.to_cells[i], now) for i in range(self.n)):
                 self._complete_step(now)
-            elif tick and self.deadline.expired(now):
+            elif expired:
                 late = [i for i in range(self.n) if not self._settled(i, moves.to_cells[i], now)]
                 where = "; ".join(self._where(i, moves.to_cells[i]) for i in late)
                 self._finish(f"settle timeout: robots {late} not settled on their cells within "
