@@ -16,6 +16,7 @@ from mapf_policy.train.actor import epsilon_at, evaluate, run_episode, team_cap_
 from mapf_policy.train.demos import demo_episode, ensure_demos, load_demos
 from mapf_policy.train.expert import ShortestPathExpert, plan_actions
 from mapf_policy.train.learner import Learner
+from mapf_policy.train.log import actor_rule_label
 from mapf_policy.train.replay import EpisodeRecorder, ReplayBuffer, to_tensors
 
 SMALL = dict(map_size=10, max_agents=3, curriculum_start_agents=2, expert="shortest_path", demo_instances=3,
@@ -137,6 +138,15 @@ def test_actor_episode_can_sample_actions_like_the_evaluated_policy():
     assert len(set(runs[100.0].tolist())) >= 4 and not np.array_equal(runs[0.0][: len(runs[100.0])], runs[100.0][: len(runs[0.0])])
     with pytest.raises(ValueError, match="actor_action_temperature must be a finite number >= 0"):
         TrainConfig(actor_action_temperature=-0.1).validate()
+
+
+def test_training_plot_names_the_actors_rule(tmp_path):
+    assert actor_rule_label(tmp_path) == "eps-greedy"            # no config.json
+    (tmp_path / "config.json").write_text(json.dumps(TrainConfig().asdict()))
+    assert actor_rule_label(tmp_path) == "eps-greedy"            # the default: temperature 0
+    cfg = TrainConfig(actor_action_temperature=0.04)
+    (tmp_path / "config.json").write_text(json.dumps(cfg.asdict()))
+    assert actor_rule_label(tmp_path) == "softmax(Q/0.04) + eps"
 
 
 def test_schedules():

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 import numpy as np
@@ -59,6 +60,13 @@ def read_csv(path: Path) -> dict:
     return {k: np.array([float(r[k]) if r[k] != "" else np.nan for r in rows]) for k in rows[0]}
 
 
+def actor_rule_label(run_dir: Path) -> str:
+    """How the run's actors chose actions, from its config.json (runs before the field existed: eps-greedy)."""
+    path = Path(run_dir) / "config.json"
+    t = json.loads(path.read_text()).get("actor_action_temperature", 0.0) if path.is_file() else 0.0
+    return f"softmax(Q/{t:g}) + eps" if t > 0 else "eps-greedy"
+
+
 def plot_run(run_dir: Path) -> Path | None:
     """runs/<name>/training.png: losses, epsilon, success rate and average step against learner step."""
     import matplotlib
@@ -72,6 +80,7 @@ def plot_run(run_dir: Path) -> Path | None:
     if not log:
         return None
     evals = read_csv(run_dir / "eval.csv") if (run_dir / "eval.csv").is_file() else {}
+    actors = actor_rule_label(run_dir)
     fig, axes = plt.subplots(2, 3, figsize=(14, 7), constrained_layout=True)
     step = log["step"]
     ax = axes[0, 0]
@@ -85,7 +94,7 @@ def plot_run(run_dir: Path) -> Path | None:
     axes[0, 2].plot(step, log["agreement"], lw=1)
     axes[0, 2].set_title("argmax Q = expert action (batch share)")
     for ax, key, title in ((axes[1, 0], "success_rate", "success rate"), (axes[1, 1], "average_step", "average step")):
-        ax.plot(step, log[key], lw=1, label="training episodes (eps-greedy)")
+        ax.plot(step, log[key], lw=1, label=f"training episodes ({actors})")
         if evals:
             for n in np.unique(evals["team_size"]):
                 sel = evals["team_size"] == n
