@@ -52,8 +52,9 @@ def test_world_stall_while_robots_answer_is_not_a_timeout(tmp_path, domain_id, a
     assert code == 0, fleet.group.log_text("world")[-3000:]
     s = json.loads(fleet.summary.read_text())
     assert stalled == [1, 2], stalled
-    # The freezes did land while the world collected actions: those steps took more than the freeze to close.
-    assert all(s["action_wall_s"][k] >= 0.9 for k in stalled), s["action_wall_s"]
+    # A freeze that landed while the world collected actions makes that step take more than the freeze to
+    # close. One must have (a loaded test process may see an observation only after its step closed).
+    assert any(s["action_wall_s"][k] >= 0.9 for k in stalled), s["action_wall_s"]
     assert s["timeouts"] == 0 and s["state"] == "success", {k: s[k] for k in ("state", "detail", "timeouts")}
 
 
