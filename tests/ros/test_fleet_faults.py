@@ -16,15 +16,16 @@ OK, BLOCKED, TIMEOUT, REJECTED = 0, 1, 2, 3
 
 
 def test_world_stall_while_robots_answer_is_not_a_timeout(tmp_path, domain_id, any_model):
-    """The world process freezes for 1 s, more than the action timeout, right after it published a step's
+    """The world process freezes for 0.6 s, more than the action timeout, right after it published a step's
     observations; the policy nodes answer in time meanwhile. When it wakes, the deadline has passed and the
     actions wait in its queue: they must be taken, not counted as timeouts. (rclpy runs the ready timers of a
     wait before its ready subscriptions, so a deadline check on the first timer tick would see none of them.)"""
     from mapf_msgs.msg import AgentObservation
 
-    # Drives at 5x real time: 150 odometry messages/s into the world, not the 600 of 20x. At 600/s, 1 run in
-    # 6 had an action come in later than the grace after the freeze (many messages queued for a frozen
-    # process; likely Fast DDS's shared-memory queue, then a resend), which is not what this test is about.
+    # Drives at 5x real time: 150 odometry messages/s into the world, not the 600 of 20x; and freezes of
+    # 0.6 s, not 1 s. With 1 s freezes 5 of 44 runs had one robot's actions held back by the middleware
+    # for 0.1 to 1.5 s after the freeze (consecutive timeouts of that robot, then normal; likely a lost sample of
+    # a reliable, in-order stream waiting for its resend), which is not what this test is about.
     fleet = Fleet(tmp_path, domain_id, any_model, world=dict(action_timeout_s=0.4, settle_timeout_s=20.0),
                   real_time_factor=5.0)
     probe = GraphProbe(domain_id)
@@ -36,7 +37,7 @@ def test_world_stall_while_robots_answer_is_not_a_timeout(tmp_path, domain_id, a
         if msg.step in (1, 2) and msg.step not in stalled:
             pid = fleet.group.procs["world"].pid
             os.kill(pid, signal.SIGSTOP)
-            time.sleep(1.0)
+            time.sleep(0.6)
             os.kill(pid, signal.SIGCONT)
             stalled.append(msg.step)
 
@@ -52,9 +53,9 @@ def test_world_stall_while_robots_answer_is_not_a_timeout(tmp_path, domain_id, a
     assert code == 0, fleet.group.log_text("world")[-3000:]
     s = json.loads(fleet.summary.read_text())
     assert stalled == [1, 2], stalled
-    # A freeze that landed while the world collected actions makes that step take more than the freeze to
+    # A freeze that landed while the world collected actions makes that step take about the freeze to
     # close. One must have (a loaded test process may see an observation only after its step closed).
-    assert any(s["action_wall_s"][k] >= 0.9 for k in stalled), s["action_wall_s"]
+    assert any(s["action_wall_s"][k] >= 0.5 for k in stalled), s["action_wall_s"]
     assert s["timeouts"] == 0 and s["state"] == "success", {k: s[k] for k in ("state", "detail", "timeouts")}
 
 
