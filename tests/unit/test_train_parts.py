@@ -179,6 +179,23 @@ def test_learner_update_and_checkpoint_round_trip(tmp_path):
     assert other.rng.bit_generator.state == learner.rng.bit_generator.state
 
 
+def test_learner_target_q_follows_the_target_network(tmp_path):
+    """The bootstrap targets come from the fast inference forward; it must track each target update."""
+    cfg = TrainConfig(batch_size=8, learning_starts=1, target_update_every=2, **SMALL)
+    rec, _ = run_episode(QNetwork().eval(), _env(n=2), 1.0, np.random.default_rng(0))
+    learner = Learner(cfg, tmp_path, rec.arrays())
+    batch = learner.sample()
+    inputs = (batch["next_fov"], batch["next_last_action"], batch["next_position"])
+    before = learner.target_q(*inputs).clone()
+    learner.update()
+    learner.update()  # the second step copies the online weights into the target
+    with torch.no_grad():
+        ref, online = learner.target(*inputs), learner.net(*inputs)
+    after = learner.target_q(*inputs)
+    assert (after - before).abs().max().item() > 0
+    assert torch.allclose(after, ref, atol=1e-5) and torch.allclose(after, online, atol=1e-5)
+
+
 def test_configs_validate_and_existing_runs_refuse_other_settings(tmp_path):
     with pytest.raises(ValueError, match="tau_h"):
         TrainConfig(tau_h=0.3).validate()

@@ -111,7 +111,12 @@ class QNetwork(nn.Module):
     def forward(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
         self.check_inputs(fov, last_action, position)
         x = self.attention(fov) if self.attention is not None else fov
-        x = self.trunk(x)
+        return self.head(self.trunk(x), last_action, position)
+
+    def head(self, x: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
+        """Q-values from the trunk's output x (B, C, s, s): CBAM, then the fully connected layers.
+
+        Shared with the inference path (inference.py), which computes the trunk differently."""
         if self.channel_attention is not None:
             x = self.channel_attention(x)
         if self.spatial_attention is not None:

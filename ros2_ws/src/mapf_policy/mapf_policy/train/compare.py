@@ -19,6 +19,7 @@ import torch
 from tqdm import tqdm
 
 from mapf_policy.action_selection import PAPER_RULE, ActionRule, make_rule
+from mapf_policy.inference import InferenceNet
 from mapf_policy.model_io import load_model
 from mapf_policy.network import QNetwork
 from mapf_policy.policy import Policy
@@ -56,8 +57,7 @@ def compare(paths, sizes, cases: int, seed: int = 0, map_size: int = 40, density
         if rule != PAPER_RULE:
             out[str(path)] = evaluate_with_rule(net, path, instances, max_steps, rule, sample_seed, progress)
             continue
-        net = net.to(memory_format=torch.channels_last).eval()
-        out[str(path)] = evaluate_by_size(net, instances, ncfg.fov_size, max_steps, progress,
+        out[str(path)] = evaluate_by_size(InferenceNet(net.eval()), instances, ncfg.fov_size, max_steps, progress,
                                           desc=Path(path).parent.name + "/" + Path(path).name)
     return out
 

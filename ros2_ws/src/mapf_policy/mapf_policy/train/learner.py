@@ -22,6 +22,7 @@ import torch
 from tqdm import tqdm
 
 from mapf_policy.config import TrainConfig
+from mapf_policy.inference import FastForward, InferenceNet
 from mapf_policy.losses import combined_loss, dqn_loss, expert_agreement, hscl_loss
 from mapf_policy.model_io import load_model, model_payload, network_from_payload, save_model
 from mapf_policy.network import QNetwork
@@ -49,6 +50,12 @@ class Learner:
         self.target = QNetwork(self.ncfg).to(self.device, memory_format=torch.channels_last)
         self.target.load_state_dict(self.net.state_dict())
         self.target.eval()
+        # On CPU, both networks' Q-values come from the faster forward passes of inference.py (the same
+        # function): the online network's differentiable FastForward, and the target's InferenceNet, which
+        # follows the target's weights as they are copied in. Figures: models/README.md, "Inference speed".
+        cpu = self.device.type == "cpu"
+        self.online_q = FastForward(self.net) if cpu else self.net
+        self.target_q = InferenceNet(self.target) if cpu else self.target
         self.opt = torch.optim.Adam(self.net.parameters(), lr=cfg.lr)
         self.online = ReplayBuffer(cfg.replay_capacity, cfg.fov_size)
         self.demo = None
@@ -120,9 +127,9 @@ class Learner:
 
     def update(self) -> dict:
         cfg, t = self.cfg, self.sample()
-        q = self.net(t["fov"], t["last_action"], t["position"])
+        q = self.online_q(t["fov"], t["last_action"], t["position"])
         with torch.no_grad():
-            next_q = self.target(t["next_fov"], t["next_last_action"], t["next_position"])
+            next_q = self.target_q(t["next_fov"], t["next_last_action"], t["next_position"])
         l1 = dqn_loss(q, t["action"], t["reward"], next_q, t["terminated"], cfg.gamma)
         labelled = t["expert"] >= 0
         if labelled.any():

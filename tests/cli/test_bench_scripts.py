@@ -1,0 +1,32 @@
+"""scripts/bench_inference and scripts/bench_learner: tiny runs print a figure for every way asked for."""
+from __future__ import annotations
+
+import re
+import subprocess
+
+
+def _run(repo_root, *args) -> subprocess.CompletedProcess:
+    return subprocess.run([str(repo_root / "scripts" / args[0]), *args[1:]], capture_output=True, text=True,
+                          timeout=300, cwd=repo_root)
+
+
+def test_bench_inference_times_every_forward_and_batch(repo_root):
+    proc = _run(repo_root, "bench_inference", "--forward", "fast", "im2col", "winograd", "reference",
+                "--batches", "1", "9", "--repeats", "4", "--rounds", "2")
+    assert proc.returncode == 0, proc.stderr
+    rows = re.findall(r"batch +(\d+), (\w+) +forward: median ([\d.]+) ms", proc.stdout)
+    assert {(b, f) for b, f, _ in rows} == {(b, f) for b in ("1", "9") for f in ("fast", "im2col", "winograd", "reference")}
+    assert all(float(ms) > 0 for _, _, ms in rows)
+
+
+def test_bench_inference_refuses_fewer_repeats_than_rounds(repo_root):
+    proc = _run(repo_root, "bench_inference", "--repeats", "2", "--rounds", "3")
+    assert proc.returncode != 0 and "--repeats (2) must be at least --rounds (3)" in proc.stderr
+
+
+def test_bench_learner_times_both_ways(repo_root):
+    proc = _run(repo_root, "bench_learner", "--batch-size", "16", "--steps", "2", "--rounds", "1", "--agents", "4")
+    assert proc.returncode == 0, proc.stderr
+    rows = re.findall(r"(fast|reference) +forward: median ([\d.]+) ms per gradient step", proc.stdout)
+    assert sorted(name for name, _ in rows) == ["fast", "reference"]
+    assert all(float(ms) > 0 for _, ms in rows)
