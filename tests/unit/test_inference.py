@@ -2,6 +2,7 @@
 Toom-Cook matrices are exact."""
 from __future__ import annotations
 
+import platform
 from fractions import Fraction
 
 import numpy as np
@@ -10,7 +11,8 @@ import torch
 from torch.nn import functional as F
 
 from mapf_policy.config import ABLATIONS, NetworkConfig
-from mapf_policy.inference import WINOGRAD_MIN_BATCH, WINOGRAD_POINTS, FastForward, InferenceNet, _Layer
+from mapf_policy.inference import (WINOGRAD_MIN_BATCH, WINOGRAD_POINTS, FastForward, InferenceNet, _Layer,
+                                   keep_freed_memory)
 from mapf_policy.model_io import load_model
 from mapf_policy.network import QNetwork
 from mapf_policy.policy import Policy
@@ -160,3 +162,8 @@ def test_toom_cook_rejects_wrong_or_repeated_points():
         toom_cook(3, 3, (0, 1, -1))
     with pytest.raises(ValueError, match="distinct finite points"):
         toom_cook(3, 3, (0, 1, 1, 2))
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="the malloc settings exist only in glibc")
+def test_malloc_settings_take_on_glibc():
+    assert keep_freed_memory() is True
