@@ -23,8 +23,8 @@ alone, done directly, would take about 6.5 ms for 64 agents on this machine's co
 Measured figures: models/README.md, "Inference speed" (scripts/bench_inference --forward fast reference,
 scripts/bench_learner).
 
-Winograd's transforms cost some precision: against a float64 reference, the shipped model's second and
-third layers are off by about 1.5e-5 and 3e-6 (activations of order 2), against 6e-7 and 3e-7 for the
+Winograd's transforms cost some precision: against a float64 reference, the second and third layers of
+git f80edd2:models/hscl.pt are off by about 1.5e-5 and 3e-6 (activations of order 2), against 6e-7 and 3e-7 for the
 direct product. The points below gave the smallest of those errors among those tried.
 
 Memory. Each call allocates and frees intermediates of about 1-2 MB (the attention's 81x81 scores per
