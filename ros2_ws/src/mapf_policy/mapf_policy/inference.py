@@ -8,7 +8,8 @@
 
 Why. Batched over many agents, QNetwork.forward spends about 80 % of its time in oneDNN convolutions whose
 images (9x9 down to 1x1) are too small for them to run near the CPU's peak, and the convolutions' arithmetic
-alone, done directly, would take about 6.5 ms for 64 agents on this machine's core. Here:
+alone, done directly, would take about 6.5 ms for 64 agents on this machine's core (throwaway profiles and
+timings, sixth and seventh sessions). Here:
 - The trunk runs channels-last, (B, H, W, C) contiguous, so each layer's output is the next one's input.
 - From 8 agents in a batch up, a layer whose input is 7x7 or 5x5 (the second and third with the paper's
   9x9 field of view) is a single-tile Winograd convolution F(m x m, 3 x 3), m = 5 or 3 (winograd.py): the
