@@ -167,7 +167,7 @@ def test_learner_update_and_checkpoint_round_trip(tmp_path):
     assert np.isfinite(out["loss"]) and learner.step == 3
     learner.save_checkpoint()
     assert learner.online_drawn == 0  # demonstrations only: nothing drawn from the (empty) online replay
-    learner.online.add(rec.arrays())
+    learner.add_online(rec.arrays())
     learner.update()
     assert learner.online_drawn == 8 - round(8 * cfg.demo_fraction)  # counted for the max_replay_ratio cap
     other = Learner(cfg, tmp_path, rec.arrays())
@@ -222,3 +222,43 @@ def test_actors_split_episode_indices_without_overlap(start, n_actors):
         assert start <= first < start + n_actors and first % n_actors == k % n_actors
         played += range(first, start + 40, n_actors)
     assert sorted(played) == list(range(start, start + 40))
+
+
+def test_learner_keeps_a_share_of_the_online_goal_waits(tmp_path):
+    """online_goal_keep thins the rows where an agent waits on its goal by the expert's word; nothing else."""
+    inst = generate_instance(3, size=10, density=0.2, n_agents=3)
+    env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=40)
+    expert = ShortestPathExpert(env.grid, env.goals, env.dist)
+    rec, (obs, _), done = EpisodeRecorder(), env.reset(), False
+    while not done:  # the expert plays: agents arrive at different steps and wait on their goals
+        actions = expert.actions(env.positions)
+        next_obs, rewards, terminated, truncated, _ = env.step(actions)
+        rec.add(obs, actions, rewards, next_obs, terminated, actions)
+        obs, done = next_obs, terminated or truncated
+    chunk = rec.arrays()
+    c = chunk["fov"].shape[-1] // 2
+    waits = (chunk["fov"][:, 2:, c, c].sum(axis=1) == 0) & (chunk["expert"] == 0) & ~chunk["terminated"]
+    assert 5 <= waits.sum() < len(waits)  # the episode has both kinds of rows
+    kept = {}
+    for share in (1.0, 0.0, 0.5):
+        learner = Learner(TrainConfig(batch_size=8, online_goal_keep=share, **SMALL), tmp_path, None)
+        kept[share] = learner.add_online(chunk)
+        assert len(learner.online) == kept[share]
+    assert kept[1.0] == len(waits)
+    assert kept[0.0] == int((~waits).sum())  # every other row stays, terminal rows included
+    assert kept[0.0] < kept[0.5] < kept[1.0]
+    learner = Learner(TrainConfig(batch_size=8, online_goal_keep=0.0, **SMALL), tmp_path, None)
+    learner.add_online(chunk)
+    stored = learner.online.sample(len(learner.online), np.random.default_rng(0))
+    c_fov = stored["fov"][:, 2:, c, c].sum(axis=1) == 0
+    assert not (c_fov & (stored["expert"] == 0) & ~stored["terminated"]).any()
+    # learning_starts counts what the actors produced, as their own gate does, not what the filter kept:
+    # counting kept rows left actor and learner waiting on each other.
+    learner = Learner(TrainConfig(batch_size=8, online_goal_keep=0.0, learning_starts=len(waits), **SMALL),
+                      tmp_path, None)
+    learner.add_online(chunk)
+    assert len(learner.online) < len(waits) and learner.online_ready()
+    learner.update()
+    assert learner.online_drawn == 8
+    with pytest.raises(ValueError, match=r"online_goal_keep must lie in \[0, 1\]"):
+        TrainConfig(online_goal_keep=1.5).validate()

@@ -166,8 +166,14 @@ class TrainConfig:
     """At most this many demonstration transitions are loaded from the cache (evenly subsampled)."""
     demo_goal_keep: float = 0.1
     """Share kept of the demonstration rows where an agent waits on its goal (about 2/3 of raw rows)."""
+    online_goal_keep: float = 1.0
+    """Share kept of the actors' rows where an agent waits on its goal and the expert says stay (demos.on_goal_stays),
+    when they enter the replay; terminal rows are always kept. 1: all (the paper; every run before the eighth
+    session). In large teams most rows are such waits, where the policy already agrees with the expert; the
+    crowded rows, where it often does not, get a larger share of each batch when fewer waits are kept."""
     learning_starts: int = 2_000
-    """Online transitions needed before online samples enter batches."""
+    """Online transitions received from the actors (before the online_goal_keep filter) before online samples
+    enter batches."""
     replay_ratio: float = 2.0
     """Target (online samples drawn by the learner) / (online samples produced); the actor waits above it."""
     max_replay_ratio: float = 0.0
@@ -240,7 +246,7 @@ class TrainConfig:
             need(int(getattr(self, name)) >= 1, f"{name} must be >= 1, got {getattr(self, name)}")
         for name in ("learning_starts", "eps_decay_steps", "curriculum_steps", "demo_instances"):
             need(int(getattr(self, name)) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
-        for name in ("demo_fraction", "demo_goal_keep", "eps_start", "eps_end", "relabel_fraction", "density"):
+        for name in ("demo_fraction", "demo_goal_keep", "online_goal_keep", "eps_start", "eps_end", "relabel_fraction", "density"):
             need(0.0 <= getattr(self, name) <= 1.0, f"{name} must lie in [0, 1], got {getattr(self, name)}")
         need(self.density < 0.6, f"density must be < 0.6 for solvable worlds, got {self.density}")
         need(0.0 < self.tau_h < 0.2, f"tau_h must lie in (0, 0.2) (Table I), got {self.tau_h}")

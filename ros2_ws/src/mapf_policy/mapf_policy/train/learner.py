@@ -27,7 +27,7 @@ from mapf_policy.losses import combined_loss, dqn_loss, expert_agreement, hscl_l
 from mapf_policy.model_io import load_model, model_payload, network_from_payload, save_model
 from mapf_policy.network import QNetwork
 from mapf_policy.train.actor import actor_main, epsilon_at, team_cap_at
-from mapf_policy.train.demos import ensure_demos, load_demos
+from mapf_policy.train.demos import ensure_demos, load_demos, on_goal_stays
 from mapf_policy.train.log import EVAL_COLUMNS, TRAIN_COLUMNS, CsvLog, plot_run, truncate_log
 from mapf_policy.train.replay import ReplayBuffer, concat, to_tensors
 
@@ -44,6 +44,7 @@ class Learner:
             raise ValueError("device cuda was asked for but torch sees no CUDA device")
         torch.manual_seed(cfg.seed)
         self.rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 0]))
+        self.keep_rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 5]))
         self.ncfg = cfg.network_config()
         # channels_last: about 20% faster convolutions in QNetwork.forward (measured before inference.py);
         # numerics unchanged. On CPU, update() uses the passes of inference.py instead (below), and
@@ -66,6 +67,10 @@ class Learner:
             self.demo.add(demos)
         self.step, self.episode = 0, 0
         self.online_drawn = 0  # online samples drawn in this session (the replay is not checkpointed either)
+        # Online transitions received from the actors in this session, before the goal-wait filter of
+        # add_online: the count the actors' own gate uses, so learning_starts and max_replay_ratio count
+        # the same thing (with the filter, the replay grows slower than the actors produce).
+        self.online_received = 0
         self.session_start = time.monotonic()
         self.elapsed = 0.0  # wall seconds of earlier sessions of this run (the CSV's elapsed_s adds this one)
 
@@ -114,10 +119,30 @@ class Learner:
         self.net.load_state_dict(net.state_dict())
         self.target.load_state_dict(net.state_dict())
 
+    def add_online(self, chunk: dict) -> int:
+        """An actor episode's transitions into the replay; a share cfg.online_goal_keep of its on-goal waits
+        (demos.on_goal_stays) is kept, terminal rows always. Returns the rows kept."""
+        keep_share = self.cfg.online_goal_keep
+        self.online_received += len(chunk["action"])
+        if keep_share < 1.0:
+            # A generator of its own, so that the batch draws of self.rng do not depend on this setting.
+            drop = on_goal_stays(chunk) & ~chunk["terminated"].astype(bool)
+            drop &= self.keep_rng.random(len(drop)) >= keep_share
+            if drop.any():
+                chunk = {k: v[~drop] for k, v in chunk.items()}
+        n = len(chunk["action"])
+        if n:
+            self.online.add(chunk)
+        return n
+
+    def online_ready(self) -> bool:
+        """learning_starts online transitions received, and some of them in the replay."""
+        return self.online_received >= max(1, self.cfg.learning_starts) and len(self.online) > 0
+
     # --- one gradient step --------------------------------------------------------------------------
     def sample(self) -> dict:
         b = self.cfg.batch_size
-        online_ready = len(self.online) >= max(1, self.cfg.learning_starts)
+        online_ready = self.online_ready()
         n_demo = 0 if self.demo is None else (b if not online_ready else int(round(b * self.cfg.demo_fraction)))
         parts = []
         if n_demo:
@@ -214,7 +239,7 @@ def train(cfg: TrainConfig, run_dir: Path, root: Path, progress: bool = True) ->
                 except queue.Empty:
                     break
                 if msg["kind"] == "episode":
-                    learner.online.add(msg["transitions"])
+                    learner.add_online(msg["transitions"])
                     learner.episode = max(learner.episode, msg["episode"])
                     recent.append(msg["stats"])
                     window["env"] += len(msg["transitions"]["action"])
@@ -229,10 +254,10 @@ def train(cfg: TrainConfig, run_dir: Path, root: Path, progress: bool = True) ->
                 print(f"\nsession limit of {cfg.session_minutes:g} min reached at step {learner.step}: checkpointing; "
                       "rerun the same command to continue")
                 break
-            if learner.demo is None and len(learner.online) < max(1, cfg.learning_starts):
+            if learner.demo is None and not learner.online_ready():
                 time.sleep(0.05)  # nothing to learn from yet
                 continue
-            if cfg.max_replay_ratio > 0 and learner.online_drawn > cfg.max_replay_ratio * max(1, learner.online.added):
+            if cfg.max_replay_ratio > 0 and learner.online_drawn > cfg.max_replay_ratio * max(1, learner.online_received):
                 time.sleep(0.005)  # the actors are behind: wait for fresh samples
                 continue
             window["losses"].append(learner.update())
