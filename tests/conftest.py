@@ -30,3 +30,21 @@ def benchmark_dir() -> Path:
     if not path.is_dir():
         pytest.skip(f"benchmark directory {path} not found (set MAPF_BENCHMARK_DIR)")
     return path
+
+
+@pytest.fixture
+def two_random_models(tmp_path) -> list[str]:
+    """Two model files of the shipped architecture with different random weights (CLI smoke runs)."""
+    import torch
+
+    from mapf_policy.config import NetworkConfig
+    from mapf_policy.model_io import save_model
+    from mapf_policy.network import QNetwork
+
+    torch.manual_seed(0)
+    paths = []
+    for k in range(2):
+        path = tmp_path / f"m{k}.pt"
+        save_model(path, QNetwork(NetworkConfig()), NetworkConfig(), {"step": k})
+        paths.append(str(path))
+    return paths

@@ -21,13 +21,8 @@ def test_held_out_cases_are_fixed_and_sized():
     assert not ((c[0].grid == a[0].grid).all() and (c[0].starts == a[0].starts).all())
 
 
-def test_compare_two_models(repo_root, tmp_path):
-    torch.manual_seed(0)
-    paths = []
-    for k in range(2):
-        path = tmp_path / f"m{k}.pt"
-        save_model(path, QNetwork(NetworkConfig()), NetworkConfig(), {"step": k})
-        paths.append(str(path))
+def test_compare_two_models(repo_root, tmp_path, two_random_models):
+    paths = two_random_models
     out = tmp_path / "cmp.json"
     run = subprocess.run([str(repo_root / "scripts" / "compare_models"), *paths, "--sizes", "1", "2", "--cases", "2",
                           "--map-size", "10", "--max-steps", "20", "--json", str(out), "--no-progress"],

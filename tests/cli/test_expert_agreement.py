@@ -5,11 +5,7 @@ import json
 import subprocess
 
 import numpy as np
-import torch
 
-from mapf_policy.config import NetworkConfig
-from mapf_policy.model_io import save_model
-from mapf_policy.network import QNetwork
 from mapf_policy.train.agreement import situations, tally
 
 
@@ -42,13 +38,8 @@ def test_situations_and_tally_count_by_hand():
     assert t["off goal, 4+ in view"] == {"rows": 1, "agree": 1}
 
 
-def test_cli_reports_every_model_and_refuses_missing(repo_root, tmp_path):
-    torch.manual_seed(0)
-    paths = []
-    for k in range(2):
-        path = tmp_path / f"m{k}.pt"
-        save_model(path, QNetwork(NetworkConfig()), NetworkConfig(), {"step": k})
-        paths.append(str(path))
+def test_cli_reports_every_model_and_refuses_missing(repo_root, tmp_path, two_random_models):
+    paths = two_random_models
     out = tmp_path / "agree.json"
     script = str(repo_root / "scripts" / "expert_agreement")
     run = subprocess.run([script, *paths, "--sizes", "2", "3", "--cases", "1", "--map-size", "10", "--max-steps", "20",
