@@ -80,14 +80,24 @@ def _check_fov(fov) -> np.ndarray:
     return fov
 
 
+def on_goal(fov: np.ndarray) -> np.ndarray:
+    """(B,) bool from (B, 6, l, l) observations: the agent stands on its own goal.
+
+    Channels 2..5 (heuristic up/down/left/right) mark the moves that get closer to the goal; on the goal
+    none does, so all four bits of the centre cell are 0. Anywhere else reachable at least one is 1.
+    """
+    fov = _check_fov(fov)
+    c = fov.shape[2] // 2
+    return fov[:, 2:6, c, c].sum(axis=1) == 0
+
+
 def settled(fov: np.ndarray) -> np.ndarray:
     """(B,) bool from (B, 6, l, l) observations: on its own goal with no agent in a 4-neighbour cell."""
     fov = _check_fov(fov)
     c = fov.shape[2] // 2
-    on_goal = fov[:, 2:6, c, c].sum(axis=1) == 0  # channels 2..5: heuristic up/down/left/right
     agents = fov[:, 1]
     neighbour = (agents[:, c - 1, c] + agents[:, c + 1, c] + agents[:, c, c - 1] + agents[:, c, c + 1]) > 0
-    return on_goal & ~neighbour
+    return on_goal(fov) & ~neighbour
 
 
 def select_actions(q: np.ndarray, action_temperature: float, rng: np.random.Generator | None,

@@ -6,7 +6,7 @@ figure hides the crowded states where teams jam. This tool plays generated held-
 COMPARE_STREAM, never benchmark cases) with each model, as the training actors do (softmax(Q / T) with
 settled agents greedy, no epsilon), labels every visited state with the expert (ODrM*) until its time
 budget is spent, and reports agreement per situation:
-  on goal   the agent stands on its goal (no heuristic bit at the centre of its view);
+  on goal   the agent stands on its goal (action_selection.on_goal);
   crowd     other agents in its field of view: 0-1, 2-3, 4 or more.
 Each model meets the same instances but visits its own states, which is what its behaviour depends on.
   scripts/expert_agreement models/hscl.pt runs/<run>/last.pt --sizes 32 64 --cases 4 --seed 16
@@ -22,11 +22,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from mapf_policy.action_selection import on_goal
 from mapf_policy.inference import InferenceNet
 from mapf_policy.model_io import load_model
 from mapf_policy.train.actor import run_episode
 from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
 from mapf_policy.train.expert import make_oracle
+from mapf_policy.train.replay import to_tensors
 from mapf_world.env import MapfEnv
 
 # Crowd buckets: (label, smallest, largest) count of other agents in the field of view.
@@ -36,10 +38,10 @@ CROWDS = (("0-1", 0, 1), ("2-3", 2, 3), ("4+", 4, 10**9))
 def situations(fov: np.ndarray) -> dict:
     """(B,) bool masks by situation from (B, 6, l, l) observations: 'on goal' / 'off goal' x crowd bucket."""
     c = fov.shape[-1] // 2
-    on_goal = fov[:, 2:, c, c].sum(axis=1) == 0  # no move gets closer: the agent is on its goal
+    goal = on_goal(fov)
     others = fov[:, 1].reshape(len(fov), -1).sum(axis=1) - fov[:, 1, c, c]
     out = {}
-    for where, mask in (("on goal", on_goal), ("off goal", ~on_goal)):
+    for where, mask in (("on goal", goal), ("off goal", ~goal)):
         for label, lo, hi in CROWDS:
             out[f"{where}, {label} in view"] = mask & (others >= lo) & (others <= hi)
     return out
@@ -71,10 +73,9 @@ def model_agreement(path, instances: list, action_temperature: float, oracle_bud
         rng = np.random.default_rng(k)
         rec, stats = run_episode(forward, env, 0.0, rng, oracle, oracle_budget, action_temperature=action_temperature)
         rows = rec.arrays()
-        fov = rows["fov"].astype(np.float32)
-        last = np.eye(5, dtype=np.float32)[rows["last_action"]]
+        t = to_tensors(rows, torch.device("cpu"))
         with torch.inference_mode():
-            q = forward(torch.from_numpy(fov), torch.from_numpy(last), torch.from_numpy(rows["position"].astype(np.float32)))
+            q = forward(t["fov"], t["last_action"], t["position"])
         totals = add_tallies(totals, tally(q.numpy(), rows["expert"].astype(np.int64), rows["fov"]))
         solved += int(stats["success"])
     return {"tallies": totals, "episodes": len(instances), "solved": solved}

@@ -23,6 +23,7 @@ from tqdm import tqdm
 
 from mapf_world.env import MapfEnv
 from mapf_world.instances import generate_instance
+from mapf_policy.action_selection import on_goal
 from mapf_policy.config import TrainConfig
 from mapf_policy.train.expert import ExpertFailed, plan_actions, solve
 from mapf_policy.train.replay import EpisodeRecorder, concat, field_specs
@@ -150,13 +151,8 @@ def ensure_demos(cfg: TrainConfig, root: Path, progress: bool = True) -> list[Pa
 
 
 def on_goal_stays(chunk: dict) -> np.ndarray:
-    """Rows where the agent stands on its goal and the expert says stay.
-
-    On the goal no move gets closer, so all four heuristic bits of the centre cell are 0; anywhere
-    else (reachable) at least one is 1, so this test is exact.
-    """
-    c = chunk["fov"].shape[-1] // 2
-    return (chunk["fov"][:, 2:, c, c].sum(axis=1) == 0) & (chunk["expert"] == 0)
+    """Rows where the agent stands on its goal (action_selection.on_goal) and the expert says stay."""
+    return on_goal(chunk["fov"]) & (chunk["expert"] == 0)
 
 
 def load_demos(paths: list[Path], capacity: int, fov_size: int, goal_keep: float = 1.0,
