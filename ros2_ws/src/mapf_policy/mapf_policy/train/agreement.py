@@ -9,13 +9,22 @@ budget is spent, and reports agreement per situation:
   on goal   the agent stands on its goal (action_selection.on_goal);
   crowd     other agents in its field of view: 0-1, 2-3, 4 or more.
 Each model meets the same instances but visits its own states, which is what its behaviour depends on.
+With --states-from REF, REF alone plays the episodes and every model is scored on REF's labelled states:
+the same rows for every model, so differences are the models' and not their visits' (the expert labels
+each state once).
+With --second-epsilon E, a second ODrM* at bound E labels the same states: the report adds each model's
+agreement with it and the two experts' agreement with each other. Where the experts disagree, a label is
+one of several good actions, which bounds the agreement any policy can reach against either of them.
   scripts/expert_agreement models/hscl.pt runs/<run>/last.pt --sizes 32 64 --cases 4 --seed 16
+  scripts/expert_agreement runs/<run>/last.pt --states-from models/hscl.pt --sizes 64 --cases 4 --seed 18
+  scripts/expert_agreement models/hscl.pt --states-from models/hscl.pt --second-epsilon 2 --expert-budget 60
 """
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -61,37 +70,147 @@ def add_tallies(a: dict, b: dict) -> dict:
     return {k: {f: a.get(k, {}).get(f, 0) + v[f] for f in ("rows", "agree")} for k, v in b.items()}
 
 
-def model_agreement(path, instances: list, action_temperature: float, oracle_budget: float,
-                    expert_epsilon: float, progress: bool, max_steps: int = 256) -> dict:
-    """Summed tallies over the instances for one model file, and the episodes' outcomes."""
-    net, ncfg, _ = load_model(path)  # a clear error for a missing, corrupt or foreign file
-    forward = InferenceNet(net.eval())
+@dataclass(frozen=True)
+class Setup:
+    """How the episodes are played and labelled (the same for every model of one call)."""
+
+    action_temperature: float = 0.04
+    """Episode actions: softmax(Q / T) with settled agents greedy; 0 = argmax (the training actors' rule)."""
+    expert_budget: float = 15.0
+    """Seconds of ODrM* planning per episode (both experts together); later states stay unlabelled."""
+    expert_epsilon: float = 10.0
+    """Suboptimality bound of the expert that labels the states (training's default)."""
+    second_epsilon: float | None = None
+    """A second ODrM* bound that labels the same states too: how consistent the expert's labels are."""
+    max_steps: int = 256
+
+
+class SecondOpinion:
+    """Labelling oracle that asks a second expert about every state the first one labels.
+
+    `labels` gets the second expert's (N,) actions, one entry per labelled step in order. When either
+    expert fails, ExpertFailed stops the labelling of the episode for both, so the two label sets cover
+    the same steps."""
+
+    def __init__(self, first, second):
+        self.first, self.second, self.labels = first, second, []
+
+    def actions(self, positions: np.ndarray) -> np.ndarray:
+        first = self.first.actions(positions)
+        self.labels.append(self.second.actions(positions))
+        return first
+
+
+def load_forward(path) -> tuple:
+    """(InferenceNet, NetworkConfig) of a model file; a clear error for a missing, corrupt or foreign file."""
+    net, ncfg, _ = load_model(path)
+    return InferenceNet(net.eval()), ncfg
+
+
+def play(forward, fov_size: int, inst, k: int, setup: Setup) -> tuple:
+    """One episode as the training actors play it (no epsilon): its labelled rows and its success.
+
+    rows["expert"] holds the first expert's labels (-1: unlabelled); with a second expert, rows["second"]
+    holds its labels of the same rows."""
+    env = MapfEnv(inst.grid, inst.starts, inst.goals, fov_size=fov_size, max_steps=setup.max_steps)
+    oracle = make_oracle("odrmstar", env.grid, env.goals, env.dist, setup.expert_epsilon, setup.expert_budget)
+    if setup.second_epsilon is not None:
+        oracle = SecondOpinion(oracle, make_oracle("odrmstar", env.grid, env.goals, env.dist, setup.second_epsilon,
+                                                   setup.expert_budget))
+    rng = np.random.default_rng(k)
+    rec, stats = run_episode(forward, env, 0.0, rng, oracle, setup.expert_budget,
+                             action_temperature=setup.action_temperature)
+    rows = rec.arrays()
+    if setup.second_epsilon is not None:
+        labelled = rows["expert"] >= 0  # the labelled steps, a prefix of the episode: one row per agent each
+        rows["second"] = np.full(len(labelled), -1, dtype=np.int64)
+        if oracle.labels:
+            rows["second"][labelled] = np.concatenate(oracle.labels)
+    return rows, bool(stats["success"])
+
+
+def score(forward, rows: dict) -> dict:
+    """One model's greedy choice on the given rows: {"tallies": vs the expert} (+ "tallies_second": vs the
+    second expert, and "experts": first expert vs second, when rows have a second label)."""
+    t = to_tensors(rows, torch.device("cpu"))
+    with torch.inference_mode():
+        q = forward(t["fov"], t["last_action"], t["position"]).numpy()
+    expert = rows["expert"].astype(np.int64)
+    out = {"tallies": tally(q, expert, rows["fov"])}
+    if "second" in rows:
+        first_as_q = np.eye(q.shape[1])[np.maximum(expert, 0)]  # unlabelled rows are skipped by tally()
+        out["tallies_second"] = tally(q, rows["second"], rows["fov"])
+        out["experts"] = tally(first_as_q, rows["second"], rows["fov"])
+    return out
+
+
+def add_scores(a: dict, b: dict) -> dict:
+    return {key: add_tallies(a.get(key, {}), b[key]) for key in b}
+
+
+def model_agreement(path, instances: list, setup: Setup, progress: bool = False) -> dict:
+    """Summed tallies over the instances for one model file on its own states, and the episodes' outcomes."""
+    forward, ncfg = load_forward(path)
     totals, solved = {}, 0
     for k, inst in enumerate(tqdm(instances, desc=Path(path).name, unit="episode", disable=not progress)):
-        env = MapfEnv(inst.grid, inst.starts, inst.goals, fov_size=ncfg.fov_size, max_steps=max_steps)
-        oracle = make_oracle("odrmstar", env.grid, env.goals, env.dist, expert_epsilon, oracle_budget)
-        rng = np.random.default_rng(k)
-        rec, stats = run_episode(forward, env, 0.0, rng, oracle, oracle_budget, action_temperature=action_temperature)
-        rows = rec.arrays()
-        t = to_tensors(rows, torch.device("cpu"))
-        with torch.inference_mode():
-            q = forward(t["fov"], t["last_action"], t["position"])
-        totals = add_tallies(totals, tally(q.numpy(), rows["expert"].astype(np.int64), rows["fov"]))
-        solved += int(stats["success"])
-    return {"tallies": totals, "episodes": len(instances), "solved": solved}
+        rows, success = play(forward, ncfg.fov_size, inst, k, setup)
+        totals = add_scores(totals, score(forward, rows))
+        solved += int(success)
+    return {**totals, "episodes": len(instances), "solved": solved}
 
 
-def markdown(results: dict) -> str:
-    names = list(next(iter(results.values()))["tallies"])
-    head = "| situation | " + " | ".join(f"{Path(p).name}: agreement (rows)" for p in results) + " |"
-    rows = [head, "|" + "---|" * (len(results) + 1)]
+def shared_agreement(reference, paths: list, instances: list, setup: Setup, progress: bool = False) -> tuple:
+    """Every model scored on the states that `reference` visits: ({path: tallies}, reference's outcomes).
+
+    Episodes are played and labelled once; each one's rows are scored by every model before the next
+    episode, so memory stays at one episode's rows."""
+    ref_forward, ref_cfg = load_forward(reference)
+    forwards = {}
+    for path in paths:
+        forward, ncfg = load_forward(path)
+        if ncfg.fov_size != ref_cfg.fov_size:
+            raise ValueError(f"{path} sees a {ncfg.fov_size}x{ncfg.fov_size} field of view but the states come "
+                             f"from {reference}, which sees {ref_cfg.fov_size}x{ref_cfg.fov_size}")
+        forwards[str(path)] = forward
+    totals, solved = {p: {} for p in forwards}, 0
+    for k, inst in enumerate(tqdm(instances, desc=f"states of {Path(reference).name}", unit="episode",
+                                  disable=not progress)):
+        rows, success = play(ref_forward, ref_cfg.fov_size, inst, k, setup)
+        for p, forward in forwards.items():
+            totals[p] = add_scores(totals[p], score(forward, rows))
+        solved += int(success)
+    results = {p: {**t, "episodes": len(instances), "solved": None} for p, t in totals.items()}
+    return results, {"model": str(reference), "episodes": len(instances), "solved": solved}
+
+
+def _cell(t: dict) -> str:
+    return f"{t['agree'] / t['rows']:.3f} ({t['rows']})" if t["rows"] else "- (0)"
+
+
+def markdown(results: dict, setup: Setup, shared: bool = False) -> str:
+    """One column per model (agreement with the expert); with a second expert, a column per model against
+    it and the experts' agreement with each other (once when every model saw the same states)."""
+    columns = []  # (header, tallies)
+    for p, r in results.items():
+        name = Path(p).name
+        if setup.second_epsilon is None:
+            columns.append((f"{name}: agreement (rows)", r["tallies"]))
+            continue
+        columns.append((f"{name} vs eps {setup.expert_epsilon:g}", r["tallies"]))
+        columns.append((f"{name} vs eps {setup.second_epsilon:g}", r["tallies_second"]))
+        if not shared:
+            columns.append((f"eps {setup.expert_epsilon:g} vs eps {setup.second_epsilon:g} ({name}'s states)",
+                            r["experts"]))
+    if setup.second_epsilon is not None and shared:
+        columns.append((f"eps {setup.expert_epsilon:g} vs eps {setup.second_epsilon:g}",
+                        next(iter(results.values()))["experts"]))
+    names = list(columns[0][1])
+    rows = ["| situation | " + " | ".join(h for h, _ in columns) + " |", "|" + "---|" * (len(columns) + 1)]
     for name in names:
-        cells = []
-        for r in results.values():
-            t = r["tallies"].get(name, {"rows": 0, "agree": 0})
-            cells.append(f"{t['agree'] / t['rows']:.3f} ({t['rows']})" if t["rows"] else "- (0)")
-        rows.append(f"| {name} | " + " | ".join(cells) + " |")
-    rows.append("| episodes solved | " + " | ".join(f"{r['solved']}/{r['episodes']}" for r in results.values()) + " |")
+        rows.append(f"| {name} | " + " | ".join(_cell(t.get(name, {"rows": 0, "agree": 0})) for _, t in columns) + " |")
+    if not shared:
+        rows.append("| episodes solved | " + " | ".join(f"{r['solved']}/{r['episodes']}" for r in results.values())
+                    + " |" + " |" * (len(columns) - len(results)))
     return "\n".join(rows)
 
 
@@ -99,6 +218,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="scripts/expert_agreement", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("models", nargs="+", help="model files")
+    p.add_argument("--states-from", type=Path, metavar="REF",
+                   help="score every model on the states that REF visits (same rows for all) instead of its own")
     p.add_argument("--sizes", type=int, nargs="+", default=[32, 64], help="team sizes (default 32 64)")
     p.add_argument("--cases", type=int, default=4, help="episodes per team size (default 4)")
     p.add_argument("--seed", type=int, default=0, help="seed of the held-out instances (default 0)")
@@ -107,6 +228,9 @@ def main(argv=None) -> int:
     p.add_argument("--expert-budget", type=float, default=15.0, metavar="S",
                    help="seconds of ODrM* planning per episode; later states stay unlabelled (default 15)")
     p.add_argument("--expert-epsilon", type=float, default=10.0, help="ODrM* suboptimality bound (default 10)")
+    p.add_argument("--second-epsilon", type=float, metavar="E",
+                   help="also label the same states with ODrM* at bound E and report agreement with it and "
+                        "between the two experts (how consistent the labels are)")
     p.add_argument("--map-size", type=int, default=40)
     p.add_argument("--density", type=float, default=0.3)
     p.add_argument("--max-steps", type=int, default=256)
@@ -119,23 +243,31 @@ def main(argv=None) -> int:
         p.error(f"--sizes, --cases and --max-steps must be positive, got {bad}")
     if not (args.action_temperature >= 0 and args.expert_budget > 0 and args.expert_epsilon >= 1):
         p.error("--action-temperature must be >= 0, --expert-budget > 0 and --expert-epsilon >= 1")
-    missing = [m for m in args.models if not Path(m).is_file()]
+    if args.second_epsilon is not None and not args.second_epsilon >= 1:
+        p.error(f"--second-epsilon must be >= 1, got {args.second_epsilon}")
+    setup = Setup(args.action_temperature, args.expert_budget, args.expert_epsilon, args.second_epsilon,
+                  args.max_steps)
+    missing = [str(m) for m in args.models + ([args.states_from] if args.states_from else []) if not Path(m).is_file()]
     if missing:
         p.error(f"no such model file: {', '.join(missing)}")
     torch.set_num_threads(args.threads)
     instances = generated_cases(args.seed, COMPARE_STREAM, args.sizes, args.cases, args.map_size, args.density)
+    states = None
     try:
-        results = {str(m): model_agreement(m, instances, args.action_temperature, args.expert_budget,
-                                           args.expert_epsilon, not args.no_progress, args.max_steps)
-                   for m in args.models}
+        if args.states_from:
+            results, states = shared_agreement(args.states_from, args.models, instances, setup,
+                                               not args.no_progress)
+        else:
+            results = {str(m): model_agreement(m, instances, setup, not args.no_progress) for m in args.models}
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(markdown(results))
+    print(markdown(results, setup, shared=states is not None))
+    if states:
+        print(f"\nStates visited by {states['model']}, which solved {states['solved']}/{states['episodes']} episodes.")
     if args.json:
         args.json.write_text(json.dumps({"sizes": args.sizes, "cases": args.cases, "seed": args.seed,
-                                         "action_temperature": args.action_temperature,
-                                         "expert_budget": args.expert_budget, "results": results}, indent=1))
+                                         "setup": asdict(setup), "states_from": states, "results": results}, indent=1))
     return 0
 
 
