@@ -14,7 +14,7 @@ the same rows for every model, so differences are the models' and not their visi
 each state once).
 With --second-epsilon E, a second ODrM* at bound E labels the same states: the report adds each model's
 agreement with it and the two experts' agreement with each other. Where the experts disagree, a label is
-one of several good actions, which bounds the agreement any policy can reach against either of them.
+one of several good actions, so part of a policy's disagreement there is a choice, not an error.
   scripts/expert_agreement models/hscl.pt runs/<run>/last.pt --sizes 32 64 --cases 4 --seed 16
   scripts/expert_agreement runs/<run>/last.pt --states-from models/hscl.pt --sizes 64 --cases 4 --seed 18
   scripts/expert_agreement models/hscl.pt --states-from models/hscl.pt --second-epsilon 2 --expert-budget 60
