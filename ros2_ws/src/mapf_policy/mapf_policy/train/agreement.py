@@ -189,28 +189,27 @@ def _cell(t: dict) -> str:
 
 def markdown(results: dict, setup: Setup, shared: bool = False) -> str:
     """One column per model (agreement with the expert); with a second expert, a column per model against
-    it and the experts' agreement with each other (once when every model saw the same states)."""
-    columns = []  # (header, tallies)
+    it and the experts' agreement with each other (once when every model saw the same states). Without
+    shared states, each model's solved episodes stand under its first column."""
+    columns = []  # (header, tallies, episodes-solved cell)
     for p, r in results.items():
-        name = Path(p).name
+        name, solved = Path(p).name, "" if shared else f"{r['solved']}/{r['episodes']}"
         if setup.second_epsilon is None:
-            columns.append((f"{name}: agreement (rows)", r["tallies"]))
+            columns.append((f"{name}: agreement (rows)", r["tallies"], solved))
             continue
-        columns.append((f"{name} vs eps {setup.expert_epsilon:g}", r["tallies"]))
-        columns.append((f"{name} vs eps {setup.second_epsilon:g}", r["tallies_second"]))
+        columns.append((f"{name} vs eps {setup.expert_epsilon:g}", r["tallies"], solved))
+        columns.append((f"{name} vs eps {setup.second_epsilon:g}", r["tallies_second"], ""))
         if not shared:
             columns.append((f"eps {setup.expert_epsilon:g} vs eps {setup.second_epsilon:g} ({name}'s states)",
-                            r["experts"]))
+                            r["experts"], ""))
     if setup.second_epsilon is not None and shared:
         columns.append((f"eps {setup.expert_epsilon:g} vs eps {setup.second_epsilon:g}",
-                        next(iter(results.values()))["experts"]))
-    names = list(columns[0][1])
-    rows = ["| situation | " + " | ".join(h for h, _ in columns) + " |", "|" + "---|" * (len(columns) + 1)]
-    for name in names:
-        rows.append(f"| {name} | " + " | ".join(_cell(t.get(name, {"rows": 0, "agree": 0})) for _, t in columns) + " |")
+                        next(iter(results.values()))["experts"], ""))
+    rows = ["| situation | " + " | ".join(c[0] for c in columns) + " |", "|" + "---|" * (len(columns) + 1)]
+    for name in columns[0][1]:
+        rows.append(f"| {name} | " + " | ".join(_cell(c[1].get(name, {"rows": 0, "agree": 0})) for c in columns) + " |")
     if not shared:
-        rows.append("| episodes solved | " + " | ".join(f"{r['solved']}/{r['episodes']}" for r in results.values())
-                    + " |" + " |" * (len(columns) - len(results)))
+        rows.append("| episodes solved | " + " | ".join(c[2] for c in columns) + " |")
     return "\n".join(rows)
 
 

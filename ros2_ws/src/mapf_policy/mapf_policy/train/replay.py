@@ -81,7 +81,7 @@ class ReplayBuffer:
         self.data = {k: np.zeros((self.capacity,) + shape, dtype=dt) for k, (dt, shape) in self.specs.items()}
         self.size = 0
         self.cursor = 0
-        self.added = 0  # transitions ever added (metadata for checkpoints and the replay ratio)
+        self.added = 0  # transitions ever added (checkpoint metadata; the replay ratio counts Learner.online_received)
 
     def __len__(self) -> int:
         return self.size
