@@ -136,3 +136,24 @@ def test_cli_second_epsilon(repo_root, tmp_path, two_random_models):
     assert "vs eps 1.5" in run.stdout and "eps 10 vs eps 1.5" in run.stdout
     bad = subprocess.run([script, ref, "--second-epsilon", "0.5"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "--second-epsilon must be >= 1" in bad.stderr
+
+
+def test_cli_second_order(repo_root, tmp_path, two_random_models):
+    ref = two_random_models[0]
+    script = str(repo_root / "scripts" / "expert_agreement")
+    tiny = ["--states-from", ref, "--sizes", "4", "--cases", "1", "--map-size", "10", "--max-steps", "20", "--no-progress"]
+    for order in ("index", "reversed"):
+        out = tmp_path / f"{order}.json"
+        run = subprocess.run([script, ref, *tiny, "--second-order", order, "--json", str(out)],
+                             capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr[-2000:]
+        data = json.loads(out.read_text())
+        assert data["setup"]["second_order"] == order and data["setup"]["second_epsilon"] == 10.0
+        r = data["results"][ref]
+        assert r["experts"]["all"]["rows"] == r["tallies"]["all"]["rows"] > 0
+        if order == "index":  # the same expert twice agrees with itself everywhere
+            assert all(v["agree"] == v["rows"] for v in r["experts"].values())
+        else:
+            assert "eps 10 vs eps 10, reversed order" in run.stdout
+    bad = subprocess.run([script, ref, "--second-order", "random"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "invalid choice" in bad.stderr

@@ -262,3 +262,54 @@ def test_learner_keeps_a_share_of_the_online_goal_waits(tmp_path):
     assert learner.online_drawn == 8
     with pytest.raises(ValueError, match=r"online_goal_keep must lie in \[0, 1\]"):
         TrainConfig(online_goal_keep=1.5).validate()
+
+
+def test_agent_orders_and_the_ordered_oracle_return_actions_in_instance_order():
+    from mapf_policy.train.expert import OrderedOracle, agent_order
+
+    cells = np.array([[3, 1], [0, 5], [3, 0], [0, 2]])
+    assert agent_order("index", cells).tolist() == [0, 1, 2, 3]
+    assert agent_order("reversed", cells).tolist() == [3, 2, 1, 0]
+    assert agent_order("position", cells).tolist() == [3, 1, 2, 0]  # (0,2) (0,5) (3,0) (3,1)
+    with pytest.raises(ValueError, match="unknown expert order"):
+        agent_order("random", cells)
+    with pytest.raises(ValueError, match="unknown expert order"):
+        OrderedOracle(None, cells, "random")
+
+    made = []
+
+    class Planner:  # the planner's agent k answers with action k (its own numbering)
+        def __init__(self, goals):
+            self.goals = goals
+            made.append(goals)
+
+        def actions(self, positions):
+            return np.arange(len(positions))
+
+    goals = np.array([[9, 9], [8, 8], [7, 7], [6, 6]])
+    oracle = OrderedOracle(Planner, goals, "position")
+    out = oracle.actions(cells)
+    assert out.tolist() == [3, 1, 2, 0]  # instance agent p[k] gets the planner's action k
+    assert made[0].tolist() == goals[[3, 1, 2, 0]].tolist()  # goals handed over in the same order
+    oracle.actions(cells + 1)  # same order: the same planner
+    assert len(made) == 1
+    oracle.actions(cells[[1, 0, 2, 3]])  # agents swapped places: a new order, a new plan
+    assert len(made) == 2
+
+
+def test_odrmstar_labels_in_another_agent_order_are_plans_of_the_same_instance():
+    from mapf_policy.train.demos import generated_cases
+    from mapf_policy.train.expert import make_oracle
+
+    inst = generated_cases(3, 4, [6], 1, 10, 0.2)[0]
+    for order in ("index", "reversed", "position"):
+        env = MapfEnv(inst.grid, inst.starts, inst.goals, fov_size=9, max_steps=60)
+        env.reset()
+        oracle = make_oracle("odrmstar", env.grid, env.goals, env.dist, 1.0, 5.0, order)
+        terminated = truncated = False
+        while not (terminated or truncated):
+            _, _, terminated, truncated, info = env.step(oracle.actions(env.positions))
+        assert terminated, order  # following the labels brings every agent to its goal
+    TrainConfig(expert_order="position").validate()
+    with pytest.raises(ValueError, match="expert_order must be one of"):
+        TrainConfig(expert_order="random").validate()

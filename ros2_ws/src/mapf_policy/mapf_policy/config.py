@@ -9,6 +9,8 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+from mapf_policy.train.expert import EXPERT_ORDERS
+
 
 def _from_dict(cls, data: dict, what: str):
     """Build dataclass `cls` from `data`; unknown keys are an error (a typo must not pass silently)."""
@@ -219,6 +221,10 @@ class TrainConfig:
     """Inflation epsilon of ODrM* (paper: 10)."""
     expert_time_limit: float = 10.0
     """Seconds per ODrM* planning call."""
+    expert_order: str = "index"
+    """Order in which the relabelling oracle hands the agents to ODrM* (train/expert.py EXPERT_ORDERS): 'index'
+    (the instance's, the paper), 'reversed', or 'position' (by current cell, row first, at every call: an order
+    each agent can work out from its own view). The demonstration cache is planned in index order."""
     demo_instances: int = 1000
     """Training instances solved by the expert into the demonstration cache (never benchmark cases)."""
     demo_shard_size: int = 50
@@ -256,6 +262,7 @@ class TrainConfig:
         need(self.delta >= 0 and self.phi >= 0 and self.delta + self.phi > 0, "delta and phi must be >= 0, not both 0")
         need(self.min_agents <= self.max_agents, f"min_agents {self.min_agents} > max_agents {self.max_agents}")
         need(self.expert in ("odrmstar", "shortest_path"), f"expert must be odrmstar or shortest_path, got {self.expert!r}")
+        need(self.expert_order in EXPERT_ORDERS, f"expert_order must be one of {EXPERT_ORDERS}, got {self.expert_order!r}")
         need(self.eval_minutes >= 0, f"eval_minutes must be >= 0, got {self.eval_minutes}")
         need(self.max_replay_ratio >= 0, f"max_replay_ratio must be >= 0, got {self.max_replay_ratio}")
         need(math.isfinite(self.actor_action_temperature) and self.actor_action_temperature >= 0,

@@ -7,6 +7,7 @@ destroyed (the recorder finalises its MCAP file there).
 """
 from __future__ import annotations
 
+import os
 import sys
 from typing import Callable, Optional, Tuple, Type
 
@@ -25,7 +26,12 @@ def create_node(name: str, factory: Callable[[], Node]) -> Optional[Node]:
     except REFUSALS as exc:
         print(f"[{name}] refusing to start: {exc}", file=sys.stderr, flush=True)
         rclpy.try_shutdown()
-        raise SystemExit(2)
+        # os._exit, not SystemExit: a refusal has opened nothing to finalise (every node checks its parameters
+        # and files before it opens a log or a device), and the interpreter's own exit, after a node whose
+        # construction failed half-way, once hung for more than 90 s after printing the line above (tenth
+        # session, one full scripts/test run; three reruns of tests/ros/test_node_refusals.py passed).
+        sys.stdout.flush()
+        os._exit(2)
     except KeyboardInterrupt:  # SIGINT while starting up (e.g. loading the model)
         rclpy.try_shutdown()
         return None

@@ -200,7 +200,7 @@ def actor_main(cfg_dict: dict, run_dir: str, start_episode: int, weights_q, data
         if rng.random() < cfg.relabel_fraction:
             # One (re)plan may not take more than the episode's whole labelling budget.
             limit = min(cfg.expert_time_limit, cfg.relabel_time_budget)
-            oracle = make_oracle(cfg.expert, env.grid, env.goals, env.dist, cfg.expert_epsilon, limit)
+            oracle = make_oracle(cfg.expert, env.grid, env.goals, env.dist, cfg.expert_epsilon, limit, cfg.expert_order)
         eps = epsilon_at(cfg, step)
         rec, stats = run_episode(forward, env, eps, rng, oracle, cfg.relabel_time_budget,
                                  action_temperature=cfg.actor_action_temperature)

@@ -17,7 +17,10 @@ agreement with it and the two experts' agreement with each other. Where the expe
 one of several good actions, so part of a policy's disagreement there is a choice, not an error.
   scripts/expert_agreement models/hscl.pt runs/<run>/last.pt --sizes 32 64 --cases 4 --seed 16
   scripts/expert_agreement runs/<run>/last.pt --states-from models/hscl.pt --sizes 64 --cases 4 --seed 18
+With --second-order, the second expert hands the agents to the planner in another order (expert.EXPERT_ORDERS):
+how much of the labels is the planner's tie-breaking by agent index, which no agent can observe.
   scripts/expert_agreement models/hscl.pt --states-from models/hscl.pt --second-epsilon 2 --expert-budget 60
+  scripts/expert_agreement models/hscl.pt --states-from models/hscl.pt --second-order reversed --expert-budget 60
 """
 from __future__ import annotations
 
@@ -36,7 +39,7 @@ from mapf_policy.inference import InferenceNet
 from mapf_policy.model_io import load_model
 from mapf_policy.train.actor import run_episode
 from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
-from mapf_policy.train.expert import make_oracle
+from mapf_policy.train.expert import EXPERT_ORDERS, make_oracle
 from mapf_policy.train.replay import to_tensors
 from mapf_world.env import MapfEnv
 
@@ -83,6 +86,10 @@ class Setup:
     second_epsilon: float | None = None
     """A second ODrM* bound that labels the same states too: how consistent the expert's labels are."""
     max_steps: int = 256
+    expert_order: str = "index"
+    """Agent order of the first expert (expert.EXPERT_ORDERS)."""
+    second_order: str = "index"
+    """Agent order of the second expert."""
 
 
 class SecondOpinion:
@@ -113,10 +120,11 @@ def play(forward, fov_size: int, inst, k: int, setup: Setup) -> tuple:
     rows["expert"] holds the first expert's labels (-1: unlabelled); with a second expert, rows["second"]
     holds its labels of the same rows."""
     env = MapfEnv(inst.grid, inst.starts, inst.goals, fov_size=fov_size, max_steps=setup.max_steps)
-    oracle = make_oracle("odrmstar", env.grid, env.goals, env.dist, setup.expert_epsilon, setup.expert_budget)
+    oracle = make_oracle("odrmstar", env.grid, env.goals, env.dist, setup.expert_epsilon, setup.expert_budget,
+                         setup.expert_order)
     if setup.second_epsilon is not None:
         oracle = SecondOpinion(oracle, make_oracle("odrmstar", env.grid, env.goals, env.dist, setup.second_epsilon,
-                                                   setup.expert_budget))
+                                                   setup.expert_budget, setup.second_order))
     rng = np.random.default_rng(k)
     rec, stats = run_episode(forward, env, 0.0, rng, oracle, setup.expert_budget,
                              action_temperature=setup.action_temperature)
@@ -183,6 +191,10 @@ def shared_agreement(reference, paths: list, instances: list, setup: Setup, prog
     return results, {"model": str(reference), "episodes": len(instances), "solved": solved}
 
 
+def expert_name(epsilon: float, order: str) -> str:
+    return f"eps {epsilon:g}" + ("" if order == "index" else f", {order} order")
+
+
 def _cell(t: dict) -> str:
     return f"{t['agree'] / t['rows']:.3f} ({t['rows']})" if t["rows"] else "- (0)"
 
@@ -197,13 +209,15 @@ def markdown(results: dict, setup: Setup, shared: bool = False) -> str:
         if setup.second_epsilon is None:
             columns.append((f"{name}: agreement (rows)", r["tallies"], solved))
             continue
-        columns.append((f"{name} vs eps {setup.expert_epsilon:g}", r["tallies"], solved))
-        columns.append((f"{name} vs eps {setup.second_epsilon:g}", r["tallies_second"], ""))
+        first, second = expert_name(setup.expert_epsilon, setup.expert_order), expert_name(setup.second_epsilon,
+                                                                                            setup.second_order)
+        columns.append((f"{name} vs {first}", r["tallies"], solved))
+        columns.append((f"{name} vs {second}", r["tallies_second"], ""))
         if not shared:
-            columns.append((f"eps {setup.expert_epsilon:g} vs eps {setup.second_epsilon:g} ({name}'s states)",
-                            r["experts"], ""))
+            columns.append((f"{first} vs {second} ({name}'s states)", r["experts"], ""))
     if setup.second_epsilon is not None and shared:
-        columns.append((f"eps {setup.expert_epsilon:g} vs eps {setup.second_epsilon:g}",
+        columns.append((f"{expert_name(setup.expert_epsilon, setup.expert_order)} vs "
+                        f"{expert_name(setup.second_epsilon, setup.second_order)}",
                         next(iter(results.values()))["experts"], ""))
     rows = ["| situation | " + " | ".join(c[0] for c in columns) + " |", "|" + "---|" * (len(columns) + 1)]
     for name in columns[0][1]:
@@ -211,6 +225,33 @@ def markdown(results: dict, setup: Setup, shared: bool = False) -> str:
     if not shared:
         rows.append("| episodes solved | " + " | ".join(c[2] for c in columns) + " |")
     return "\n".join(rows)
+
+
+def add_setup_arguments(p: argparse.ArgumentParser) -> None:
+    """The episode and labelling options (Setup's first expert) and the world options, shared with
+    scripts/collect_rows."""
+    p.add_argument("--action-temperature", type=float, default=0.04, metavar="T",
+                   help="the episodes' actions: softmax(Q/T), settled agents greedy; 0 = argmax (default 0.04)")
+    p.add_argument("--expert-budget", type=float, default=15.0, metavar="S",
+                   help="seconds of ODrM* planning per episode; later states stay unlabelled (default 15)")
+    p.add_argument("--expert-epsilon", type=float, default=10.0, help="ODrM* suboptimality bound (default 10)")
+    p.add_argument("--expert-order", choices=EXPERT_ORDERS, default="index",
+                   help="order in which the agents are handed to ODrM* (default index: the instance's; "
+                        "see mapf_policy/train/expert.py)")
+    p.add_argument("--map-size", type=int, default=40)
+    p.add_argument("--density", type=float, default=0.3)
+    p.add_argument("--max-steps", type=int, default=256)
+
+
+def setup_from_args(p: argparse.ArgumentParser, args, second_epsilon: float | None = None,
+                    second_order: str = "index") -> Setup:
+    """Setup from the options of add_setup_arguments; a usage error (exit 2) names a bad value."""
+    if args.max_steps < 1:
+        p.error(f"--max-steps must be positive, got {args.max_steps}")
+    if not (args.action_temperature >= 0 and args.expert_budget > 0 and args.expert_epsilon >= 1):
+        p.error("--action-temperature must be >= 0, --expert-budget > 0 and --expert-epsilon >= 1")
+    return Setup(args.action_temperature, args.expert_budget, args.expert_epsilon, second_epsilon, args.max_steps,
+                 args.expert_order, second_order)
 
 
 def main(argv=None) -> int:
@@ -222,30 +263,25 @@ def main(argv=None) -> int:
     p.add_argument("--sizes", type=int, nargs="+", default=[32, 64], help="team sizes (default 32 64)")
     p.add_argument("--cases", type=int, default=4, help="episodes per team size (default 4)")
     p.add_argument("--seed", type=int, default=0, help="seed of the held-out instances (default 0)")
-    p.add_argument("--action-temperature", type=float, default=0.04, metavar="T",
-                   help="the episodes' actions: softmax(Q/T), settled agents greedy; 0 = argmax (default 0.04)")
-    p.add_argument("--expert-budget", type=float, default=15.0, metavar="S",
-                   help="seconds of ODrM* planning per episode; later states stay unlabelled (default 15)")
-    p.add_argument("--expert-epsilon", type=float, default=10.0, help="ODrM* suboptimality bound (default 10)")
+    add_setup_arguments(p)
     p.add_argument("--second-epsilon", type=float, metavar="E",
                    help="also label the same states with ODrM* at bound E and report agreement with it and "
                         "between the two experts (how consistent the labels are)")
-    p.add_argument("--map-size", type=int, default=40)
-    p.add_argument("--density", type=float, default=0.3)
-    p.add_argument("--max-steps", type=int, default=256)
+    p.add_argument("--second-order", choices=EXPERT_ORDERS,
+                   help="agent order of the second expert (implies one, at --second-epsilon or else the first's "
+                        "bound): how much the labels depend on the order")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     p.add_argument("--json", type=Path, help="also write the tallies here")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
-    bad = [n for n in args.sizes + [args.cases, args.max_steps] if n < 1]
+    bad = [n for n in args.sizes + [args.cases] if n < 1]
     if bad:
-        p.error(f"--sizes, --cases and --max-steps must be positive, got {bad}")
-    if not (args.action_temperature >= 0 and args.expert_budget > 0 and args.expert_epsilon >= 1):
-        p.error("--action-temperature must be >= 0, --expert-budget > 0 and --expert-epsilon >= 1")
+        p.error(f"--sizes and --cases must be positive, got {bad}")
     if args.second_epsilon is not None and not args.second_epsilon >= 1:
         p.error(f"--second-epsilon must be >= 1, got {args.second_epsilon}")
-    setup = Setup(args.action_temperature, args.expert_budget, args.expert_epsilon, args.second_epsilon,
-                  args.max_steps)
+    if args.second_order is not None and args.second_epsilon is None:
+        args.second_epsilon = args.expert_epsilon
+    setup = setup_from_args(p, args, args.second_epsilon, args.second_order or "index")
     missing = [str(m) for m in args.models + ([args.states_from] if args.states_from else []) if not Path(m).is_file()]
     if missing:
         p.error(f"no such model file: {', '.join(missing)}")

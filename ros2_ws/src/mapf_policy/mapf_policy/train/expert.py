@@ -62,13 +62,59 @@ class _OdrmOracle:
         return actions
 
 
-def make_oracle(kind: str, grid: np.ndarray, goals: np.ndarray, dist: np.ndarray, epsilon: float, time_limit: float):
+# The order in which the agents are handed to ODrM*. Its plans depend on it where several joint moves are
+# equally good (operator decomposition expands the agents one by one, in index order), so the same cells
+# can get other labels under another order:
+#   index     the instance's agent indices (the paper; every run so far);
+#   reversed  the indices backwards (a fixed relabelling of the same kind, for comparison);
+#   position  sorted by current cell, row first, at every call: an order that each agent can work out from
+#             its own view (its position input and the cells of the agents it sees), unlike indices.
+EXPERT_ORDERS = ("index", "reversed", "position")
+
+
+def agent_order(order: str, positions: np.ndarray) -> np.ndarray:
+    """Permutation p: the planner's agent k is the instance's agent p[k]."""
+    n = len(positions)
+    if order == "index":
+        return np.arange(n)
+    if order == "reversed":
+        return np.arange(n)[::-1].copy()
+    if order == "position":
+        return np.lexsort((positions[:, 1], positions[:, 0]))  # row first, then column
+    raise ValueError(f"unknown expert order {order!r}; one of {EXPERT_ORDERS}")
+
+
+class OrderedOracle:
+    """ODrM* labels with the agents handed to the planner in `order` (EXPERT_ORDERS); actions come back in
+    the instance's agent order. A new order (position: agents changed places) means a new plan."""
+
+    def __init__(self, make, goals: np.ndarray, order: str):
+        agent_order(order, np.zeros((0, 2), dtype=np.int64))  # a clear error for an unknown order, now
+        self._make, self.goals, self.order = make, np.asarray(goals), order
+        self._perm, self._oracle = None, None
+
+    def actions(self, positions: np.ndarray) -> np.ndarray:
+        positions = np.asarray(positions, dtype=np.int64)
+        perm = agent_order(self.order, positions)
+        if self._perm is None or not np.array_equal(perm, self._perm):
+            self._perm, self._oracle = perm, self._make(self.goals[perm])
+        out = np.empty(len(perm), dtype=np.int64)
+        out[perm] = self._oracle.actions(positions[perm])
+        return out
+
+
+def make_oracle(kind: str, grid: np.ndarray, goals: np.ndarray, dist: np.ndarray, epsilon: float, time_limit: float,
+                order: str = "index"):
+    """An oracle with `.actions(positions)`; `order` (odrmstar only): see EXPERT_ORDERS."""
     if kind == "shortest_path":
         return ShortestPathExpert(grid, goals, dist)
     if kind == "odrmstar":
         from mapf_world.planners.expert import ExpertOracle  # native planner: imported only when used
 
-        return _OdrmOracle(ExpertOracle(grid, goals, epsilon=epsilon, time_limit=time_limit))
+        def make(goals_in_order):
+            return _OdrmOracle(ExpertOracle(grid, goals_in_order, epsilon=epsilon, time_limit=time_limit))
+
+        return make(goals) if order == "index" else OrderedOracle(make, goals, order)
     raise ValueError(f"unknown expert {kind!r} (odrmstar or shortest_path)")
 
 
