@@ -62,3 +62,17 @@ def test_train_two_actors_no_demos_stops_at_session_limit(repo_root, tmp_path):
     with (run_dir / "train.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert int(rows[-1]["episodes"]) >= 2 and int(rows[-1]["demo_size"]) == 0
+
+
+@pytest.mark.slow
+def test_train_relabels_with_odrmstar_in_position_order(repo_root, tmp_path):
+    """--expert-order position reaches the actors' ODrM* relabelling: every online sample gets a label."""
+    run = _run(repo_root, tmp_path, "--expert", "odrmstar", "--expert-order", "position", "--demo-instances", "0",
+               "--relabel-fraction", "1.0", "--max-agents", "4", "--curriculum-start-agents", "4", "--run-name", "pos")
+    assert run.returncode == 0, run.stderr[-3000:]
+    run_dir = tmp_path / "runs" / "pos"
+    assert '"expert_order": "position"' in (run_dir / "config.json").read_text()
+    with (run_dir / "train.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert rows and all(float(r["labelled_share"]) > 0.9 for r in rows)
+    assert all(0.0 <= float(r["agreement"]) <= 1.0 for r in rows)
