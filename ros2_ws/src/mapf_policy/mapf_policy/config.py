@@ -9,7 +9,9 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-from mapf_policy.train.expert import EXPERT_ORDERS
+# Orders in which the expert's oracle hands the agents to ODrM* (TrainConfig.expert_order); what each
+# means and why it matters: mapf_policy/train/expert.py, agent_order.
+EXPERT_ORDERS = ("index", "reversed", "position")
 
 
 def _from_dict(cls, data: dict, what: str):
@@ -222,7 +224,7 @@ class TrainConfig:
     expert_time_limit: float = 10.0
     """Seconds per ODrM* planning call."""
     expert_order: str = "index"
-    """Order in which the relabelling oracle hands the agents to ODrM* (train/expert.py EXPERT_ORDERS): 'index'
+    """Order in which the relabelling oracle hands the agents to ODrM* (EXPERT_ORDERS above): 'index'
     (the instance's, the paper), 'reversed', or 'position' (by current cell, row first, at every call: an order
     each agent can work out from its own view). The demonstration cache is planned in index order."""
     demo_instances: int = 1000

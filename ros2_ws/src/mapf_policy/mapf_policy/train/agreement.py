@@ -17,7 +17,7 @@ agreement with it and the two experts' agreement with each other. Where the expe
 one of several good actions, so part of a policy's disagreement there is a choice, not an error.
   scripts/expert_agreement models/hscl.pt runs/<run>/last.pt --sizes 32 64 --cases 4 --seed 16
   scripts/expert_agreement runs/<run>/last.pt --states-from models/hscl.pt --sizes 64 --cases 4 --seed 18
-With --second-order, the second expert hands the agents to the planner in another order (expert.EXPERT_ORDERS):
+With --second-order, the second expert hands the agents to the planner in another order (config.EXPERT_ORDERS):
 how much of the labels is the planner's tie-breaking by agent index, which no agent can observe.
   scripts/expert_agreement models/hscl.pt --states-from models/hscl.pt --second-epsilon 2 --expert-budget 60
   scripts/expert_agreement models/hscl.pt --states-from models/hscl.pt --second-order reversed --expert-budget 60
@@ -35,11 +35,12 @@ import torch
 from tqdm import tqdm
 
 from mapf_policy.action_selection import on_goal
+from mapf_policy.config import EXPERT_ORDERS
 from mapf_policy.inference import InferenceNet
 from mapf_policy.model_io import load_model
 from mapf_policy.train.actor import run_episode
 from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
-from mapf_policy.train.expert import EXPERT_ORDERS, make_oracle
+from mapf_policy.train.expert import make_oracle
 from mapf_policy.train.replay import to_tensors
 from mapf_world.env import MapfEnv
 
@@ -87,7 +88,7 @@ class Setup:
     """A second ODrM* bound that labels the same states too: how consistent the expert's labels are."""
     max_steps: int = 256
     expert_order: str = "index"
-    """Agent order of the first expert (expert.EXPERT_ORDERS)."""
+    """Agent order of the first expert (config.EXPERT_ORDERS)."""
     second_order: str = "index"
     """Agent order of the second expert."""
 
@@ -204,21 +205,20 @@ def markdown(results: dict, setup: Setup, shared: bool = False) -> str:
     it and the experts' agreement with each other (once when every model saw the same states). Without
     shared states, each model's solved episodes stand under its first column."""
     columns = []  # (header, tallies, episodes-solved cell)
+    first, second = expert_name(setup.expert_epsilon, setup.expert_order), None
+    if setup.second_epsilon is not None:
+        second = expert_name(setup.second_epsilon, setup.second_order)
     for p, r in results.items():
         name, solved = Path(p).name, "" if shared else f"{r['solved']}/{r['episodes']}"
         if setup.second_epsilon is None:
             columns.append((f"{name}: agreement (rows)", r["tallies"], solved))
             continue
-        first, second = expert_name(setup.expert_epsilon, setup.expert_order), expert_name(setup.second_epsilon,
-                                                                                            setup.second_order)
         columns.append((f"{name} vs {first}", r["tallies"], solved))
         columns.append((f"{name} vs {second}", r["tallies_second"], ""))
         if not shared:
             columns.append((f"{first} vs {second} ({name}'s states)", r["experts"], ""))
     if setup.second_epsilon is not None and shared:
-        columns.append((f"{expert_name(setup.expert_epsilon, setup.expert_order)} vs "
-                        f"{expert_name(setup.second_epsilon, setup.second_order)}",
-                        next(iter(results.values()))["experts"], ""))
+        columns.append((f"{first} vs {second}", next(iter(results.values()))["experts"], ""))
     rows = ["| situation | " + " | ".join(c[0] for c in columns) + " |", "|" + "---|" * (len(columns) + 1)]
     for name in columns[0][1]:
         rows.append(f"| {name} | " + " | ".join(_cell(c[1].get(name, {"rows": 0, "agree": 0})) for c in columns) + " |")

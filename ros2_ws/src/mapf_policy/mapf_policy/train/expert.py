@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from mapf_policy.config import EXPERT_ORDERS
 from mapf_world.env import MapfEnv
 from mapf_world.grid import DELTAS, STAY
 
@@ -62,16 +63,13 @@ class _OdrmOracle:
         return actions
 
 
-# The order in which the agents are handed to ODrM*. Its plans depend on it where several joint moves are
-# equally good (operator decomposition expands the agents one by one, in index order), so the same cells
-# can get other labels under another order:
+# The order in which the agents are handed to ODrM* (config.EXPERT_ORDERS). Its plans depend on it where
+# several joint moves are equally good (operator decomposition expands the agents one by one, in index
+# order), so the same cells can get other labels under another order:
 #   index     the instance's agent indices (the paper; every run so far);
 #   reversed  the indices backwards (a fixed relabelling of the same kind, for comparison);
 #   position  sorted by current cell, row first, at every call: an order that each agent can work out from
 #             its own view (its position input and the cells of the agents it sees), unlike indices.
-EXPERT_ORDERS = ("index", "reversed", "position")
-
-
 def agent_order(order: str, positions: np.ndarray) -> np.ndarray:
     """Permutation p: the planner's agent k is the instance's agent p[k]."""
     n = len(positions)
@@ -89,7 +87,8 @@ class OrderedOracle:
     the instance's agent order. A new order (position: agents changed places) means a new plan."""
 
     def __init__(self, make, goals: np.ndarray, order: str):
-        agent_order(order, np.zeros((0, 2), dtype=np.int64))  # a clear error for an unknown order, now
+        if order not in EXPERT_ORDERS:
+            raise ValueError(f"unknown expert order {order!r}; one of {EXPERT_ORDERS}")
         self._make, self.goals, self.order = make, np.asarray(goals), order
         self._perm, self._oracle = None, None
 

@@ -21,7 +21,6 @@ the same command resumes (also with a larger --steps; other settings must match)
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import signal
@@ -39,7 +38,7 @@ from mapf_policy.inference import FastForward, InferenceNet
 from mapf_policy.losses import hscl_loss
 from mapf_policy.model_io import load_model, model_payload, network_from_payload, save_model
 from mapf_policy.train.agreement import situations, tally
-from mapf_policy.train.log import read_csv
+from mapf_policy.train.log import CsvLog, read_csv, truncate_log
 from mapf_policy.train.rows import load_rows
 
 CROWDED = "off goal, 4+ in view"
@@ -195,21 +194,6 @@ class Fitter:
         torch.set_rng_state(ck["torch_rng"])
 
 
-def _write_csv(path: Path, row: dict) -> None:
-    new = not path.is_file()
-    with path.open("a", newline="") as f:
-        w = csv.writer(f)
-        if new:
-            w.writerow(FIT_COLUMNS)
-        w.writerow([f"{row[c]:.6g}" if isinstance(row[c], float) else row[c] for c in FIT_COLUMNS])
-
-
-def _truncate_csv(path: Path, step: int) -> None:
-    if path.is_file():
-        lines = path.read_text().splitlines(keepends=True)
-        path.write_text("".join(lines[:1] + [ln for ln in lines[1:] if int(ln.split(",", 1)[0]) <= step]))
-
-
 def plot_fit(out: Path) -> Path | None:
     """OUT/fit.png: the losses, and agreement with the expert (all rows and crowded rows, training sample and
     held-out) against the step."""
@@ -258,14 +242,16 @@ def fit(cfg: FitConfig, out: Path, progress: bool = True) -> Fitter:
     torch.set_num_threads(cfg.threads)
     fitter = Fitter(cfg, out)
     config_path.write_text(json.dumps(asdict(cfg), indent=1))
-    log = out / "fit.csv"
+    log_path = out / "fit.csv"
     if (out / "checkpoint.pt").is_file():
         fitter.load_checkpoint()
-        _truncate_csv(log, fitter.step)
+        truncate_log(log_path, fitter.step)
+        log = CsvLog(log_path, FIT_COLUMNS)
     else:
-        log.unlink(missing_ok=True)
-        _write_csv(log, {"step": 0, "loss": float("nan"), "hscl": float("nan"), "ce": float("nan"),
-                         **fitter.evaluate(), "elapsed_s": 0.0})
+        log_path.unlink(missing_ok=True)
+        log = CsvLog(log_path, FIT_COLUMNS)
+        log.write({"step": 0, "loss": float("nan"), "hscl": float("nan"), "ce": float("nan"), **fitter.evaluate(),
+                   "elapsed_s": 0.0})
     print(f"{len(fitter.rows['expert'])} training rows ({len(fitter.crowded)} crowded), "
           f"{len(fitter.held_out['expert'])} held-out rows", flush=True)
     previous = signal.signal(signal.SIGTERM, _interrupt)
@@ -280,7 +266,7 @@ def fit(cfg: FitConfig, out: Path, progress: bool = True) -> Fitter:
                 fitter.elapsed = time.monotonic() - start
                 mean = {k: float(np.mean([l[k] for l in losses])) for k in ("loss", "hscl", "ce")}
                 row = {"step": fitter.step, **mean, **fitter.evaluate(), "elapsed_s": fitter.elapsed}
-                _write_csv(log, row)
+                log.write(row)
                 save_model(out / f"step_{fitter.step}.pt", fitter.net, fitter.ncfg, fitter.meta())
                 fitter.save_checkpoint()
                 plot_fit(out)
