@@ -66,7 +66,7 @@ def test_compare_with_sampled_actions_is_repeatable_and_checked(repo_root, tmp_p
     assert outs[0] == outs[1]  # same cases, same sampling seed: same results
     # The default base rule here is the paper's; the flag replaces only the temperature.
     assert outs[0]["action_rule"] == {"action_temperature": 0.5, "backtrack_penalty": 0.0,
-                                      "mask_obstacle_moves": False, "settled_greedy": True}
+                                      "mask_obstacle_moves": False, "settled_greedy": True, "goal_stay_bonus": 0.0}
     assert outs[0]["sample_seed"] == 3
     v = outs[0]["results"][str(path)]["2"]
     assert v["cases"] == 2 and 0 < v["average_step"] <= 15

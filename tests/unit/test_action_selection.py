@@ -125,7 +125,8 @@ def test_hscl_solver_settings_and_repeatable_cases(tmp_path):
     assert isinstance(inst, Instance)
     sampled = make_hscl(model=str(path), action_temperature=0.5, seed=11)
     assert sampled.settings == {"model": str(path), "action_temperature": 0.5, "backtrack_penalty": 0.05,
-                                "mask_obstacle_moves": True, "settled_greedy": True, "seed": 11}
+                                "mask_obstacle_moves": True, "settled_greedy": True, "goal_stay_bonus": 0.0,
+                                "seed": 11}
     # The generator restarts at each case: running a case twice gives the same trajectory.
     first = run_case(sampled, inst, 20).positions
     assert np.array_equal(first, run_case(sampled, inst, 20).positions)
@@ -218,7 +219,7 @@ def test_policy_penalises_moving_back_from_its_own_memory_and_reset_forgets(tmp_
 
 def test_action_rule_is_validated_and_named_rules_are_known():
     assert ActionRule().asdict() == {"action_temperature": 0.04, "backtrack_penalty": 0.05,
-                                     "mask_obstacle_moves": True, "settled_greedy": True}
+                                     "mask_obstacle_moves": True, "settled_greedy": True, "goal_stay_bonus": 0.0}
     assert make_rule("paper") == PAPER_RULE and PAPER_RULE.action_temperature == 0.0
     assert make_rule("paper", action_temperature=0.04).mask_obstacle_moves is False
     with pytest.raises(ValueError, match="mask_obstacle_moves must be true or false"):
@@ -227,3 +228,21 @@ def test_action_rule_is_validated_and_named_rules_are_known():
         make_rule(temperature=0.1)
     with pytest.raises(ValueError, match="rule must be an ActionRule"):
         Policy(QNetwork(NetworkConfig()), rule={"action_temperature": 0.1})
+
+
+def test_goal_stay_bonus_holds_agents_on_their_goal_only(tmp_path):
+    torch.manual_seed(5)
+    cfg = NetworkConfig()
+    path = save_model(tmp_path / "m.pt", QNetwork(cfg), cfg, {"steps": 0})
+    grid = np.zeros((12, 12), dtype=np.uint8)
+    # Two agents side by side, so neither is settled: agent 0 on its goal, agent 1 two cells from its goal.
+    obs = ObservationBuilder(grid, [[5, 5], [5, 8]]).build([[5, 5], [5, 6]], [0, 0])
+    batch = {k: np.repeat(v, 200, axis=0) for k, v in obs.items()}
+    on = np.repeat([True, False], 200)
+    held = Policy(path, rule=make_rule(action_temperature=100.0, goal_stay_bonus=1e6), seed=0).act_obs(batch)
+    assert (held[on] == 0).all()  # on its goal: always stays
+    assert len(set(held[~on].tolist())) > 2  # off its goal: untouched, near-uniform draws
+    free = Policy(path, rule=make_rule(action_temperature=100.0), seed=0).act_obs(batch)
+    assert (free[on] != 0).any()
+    with pytest.raises(ValueError, match="goal_stay_bonus must be a finite number >= 0"):
+        ActionRule(goal_stay_bonus=-0.1)

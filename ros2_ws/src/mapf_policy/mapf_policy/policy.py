@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mapf_policy.action_selection import ActionRule, backtrack_moves, obstacle_moves, select_actions, settled
+from mapf_policy.action_selection import ActionRule, backtrack_moves, obstacle_moves, on_goal, select_actions, settled
 from mapf_policy.config import NetworkConfig
 from mapf_policy.inference import InferenceNet
 from mapf_policy.model_io import load_model
@@ -94,6 +94,8 @@ class Policy:
         if rule.backtrack_penalty > 0 and self._previous is not None and self._previous.shape == pos.shape:
             q = q - rule.backtrack_penalty * backtrack_moves(pos, self._previous)
         self._previous = pos.copy()
+        if rule.goal_stay_bonus > 0:
+            q[:, 0] += rule.goal_stay_bonus * on_goal(f)
         rows = settled(f) if rule.action_temperature > 0 and rule.settled_greedy else None
         excluded = obstacle_moves(f) if rule.mask_obstacle_moves else None
         return select_actions(q, rule.action_temperature, self.rng, greedy_rows=rows, excluded=excluded)

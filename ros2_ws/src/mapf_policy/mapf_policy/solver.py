@@ -85,8 +85,8 @@ def make_hscl(model=None, **options) -> HsclSolver:
     """The paper's policy; `model` defaults to <repo>/models/hscl.pt.
 
     Options: action_rule ("default", or "paper": greedy argmax and nothing else), and any ActionRule field
-    to replace (action_temperature, backtrack_penalty, mask_obstacle_moves, settled_greedy); seed (of
-    the per-case sampling generator, default 0); num_threads (torch, default 1).
+    to replace (action_temperature, backtrack_penalty, mask_obstacle_moves, settled_greedy, goal_stay_bonus);
+    seed (of the per-case sampling generator, default 0); num_threads (torch, default 1).
     """
     full = {k: getattr(NetworkConfig(), k) for k in ("self_attention", "channel_attention", "spatial_attention")}
     return _load("hscl", model, full, options)

@@ -71,6 +71,37 @@ def markdown(results: dict, sizes) -> str:
     return "\n".join(rows)
 
 
+def add_rule_arguments(p: argparse.ArgumentParser, default_rule: str) -> None:
+    """The action-rule options shared by the held-out tools; `rule_from_args` reads them."""
+    p.add_argument("--action-rule", default=default_rule, metavar="NAME",
+                   help=f"'paper' (greedy argmax only) or 'default' (the shipped sampled rule); default here: "
+                        f"{default_rule}. The options below replace single fields of it")
+    p.add_argument("--action-temperature", type=float, default=None, metavar="T",
+                   help="sample actions from softmax(Q/T) as scripts/evaluate does; 0 = greedy")
+    p.add_argument("--backtrack-penalty", type=float, default=None, metavar="P",
+                   help="Q-value penalty on the move back to the previous step's cell; 0 = off")
+    p.add_argument("--goal-stay-bonus", type=float, default=None, metavar="B",
+                   help="ablation: added to the Q-value of staying for an agent on its own goal; 0 = off")
+    p.add_argument("--mask-obstacle-moves", default=None, action=argparse.BooleanOptionalAction,
+                   help="never choose a move into a static obstacle or off the map")
+    p.add_argument("--sample-seed", type=int, default=0, metavar="S",
+                   help="seed of the action sampling, restarted at each case (default 0)")
+    p.add_argument("--sample-settled", action="store_true",
+                   help="ablation: sample settled agents too (on their goal, no agent beside them), which the "
+                        "policy otherwise keeps greedy")
+
+
+def rule_from_args(args) -> ActionRule:
+    """The ActionRule of `add_rule_arguments`' options (ValueError names a bad value)."""
+    overrides = {k: v for k, v in (("action_temperature", args.action_temperature),
+                                   ("backtrack_penalty", args.backtrack_penalty),
+                                   ("goal_stay_bonus", args.goal_stay_bonus),
+                                   ("mask_obstacle_moves", args.mask_obstacle_moves)) if v is not None}
+    if args.sample_settled:
+        overrides["settled_greedy"] = False
+    return make_rule(args.action_rule, **overrides)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="scripts/compare_models", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -82,20 +113,7 @@ def main(argv=None) -> int:
     p.add_argument("--density", type=float, default=0.3)
     p.add_argument("--max-steps", type=int, default=256)
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    p.add_argument("--action-rule", default="paper", metavar="NAME",
-                   help="'paper' (greedy argmax only, the default here) or 'default' (the shipped sampled rule); "
-                        "the options below replace single fields of it")
-    p.add_argument("--action-temperature", type=float, default=None, metavar="T",
-                   help="sample actions from softmax(Q/T) as scripts/evaluate does; 0 = greedy")
-    p.add_argument("--backtrack-penalty", type=float, default=None, metavar="P",
-                   help="Q-value penalty on the move back to the previous step's cell; 0 = off")
-    p.add_argument("--mask-obstacle-moves", default=None, action=argparse.BooleanOptionalAction,
-                   help="never choose a move into a static obstacle or off the map")
-    p.add_argument("--sample-seed", type=int, default=0, metavar="S",
-                   help="seed of the action sampling, restarted at each case (default 0)")
-    p.add_argument("--sample-settled", action="store_true",
-                   help="ablation: sample settled agents too (on their goal, no agent beside them), which the "
-                        "policy otherwise keeps greedy")
+    add_rule_arguments(p, default_rule="paper")
     p.add_argument("--json", type=Path, help="also write the results here")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
@@ -106,13 +124,8 @@ def main(argv=None) -> int:
     if missing:
         p.error(f"no such model file: {', '.join(missing)}")
     torch.set_num_threads(args.threads)
-    overrides = {k: v for k, v in (("action_temperature", args.action_temperature),
-                                   ("backtrack_penalty", args.backtrack_penalty),
-                                   ("mask_obstacle_moves", args.mask_obstacle_moves)) if v is not None}
-    if args.sample_settled:
-        overrides["settled_greedy"] = False
     try:
-        rule = make_rule(args.action_rule, **overrides)
+        rule = rule_from_args(args)
         results = compare(args.models, args.sizes, args.cases, args.seed, args.map_size, args.density,
                           args.max_steps, progress=not args.no_progress, rule=rule, sample_seed=args.sample_seed)
     except ValueError as exc:

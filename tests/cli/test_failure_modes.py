@@ -1,0 +1,110 @@
+"""scripts/failure_modes: what a trajectory shows (off at end, all but k, goal departures, flicker) and the CLI."""
+from __future__ import annotations
+
+import json
+import subprocess
+
+import numpy as np
+import pytest
+
+from mapf_policy.train.failures import beside_others, summarize, trace_case
+
+GOALS = np.array([[0, 0], [0, 1], [5, 5]])
+
+
+def _trajectory(steps_of_agent0: list, others=((0, 2), (4, 5))) -> np.ndarray:
+    """Agent 0 walks `steps_of_agent0`; agent 1 sits at (0, 2) beside its goal (0, 1), agent 2 at (4, 5)."""
+    return np.array([[a0, others[0], others[1]] for a0 in steps_of_agent0])
+
+
+def test_beside_others_looks_at_the_four_neighbour_cells_only():
+    cells = np.array([[[0, 0], [0, 1], [2, 2], [3, 3]]])
+    assert beside_others(cells).tolist() == [[True, True, False, False]]  # (2, 2) and (3, 3) are diagonal
+
+
+def test_trace_counts_departures_beside_others_and_flicker():
+    # Agent 0 steps on and off its goal (0, 0) three times. The neighbour cells of (0, 0) are (1, 0) and
+    # (0, 1); agent 1 at (0, 2) is two cells away, so on its goal agent 0 is alone.
+    path = [(0, 1), (0, 0), (0, 1), (0, 0), (0, 1), (0, 0), (0, 1)]
+    trace = trace_case(_trajectory(path), GOALS, success=False, window=64)
+    assert trace["steps"] == 6 and trace["n_agents"] == 3
+    assert trace["on_goal"] == [0, 1, 0, 1, 0, 1, 0]  # agent 0 only; agents 1 and 2 never on their goals
+    assert trace["off_at_end"] == 3
+    assert trace["all_but"] == {1: None, 0: None}  # k < 3 only: never 2 of 3 on goal
+    assert (trace["on_goal_alone"], trace["departures_alone"]) == (3, 3)  # steps 1, 3, 5, left each time
+    assert (trace["on_goal_beside"], trace["departures_beside"]) == (0, 0)
+    assert trace["flickering"] == 1
+    # Agents 1 and 2 never move and are never on their goals: 12 still off-goal agent-steps of 18; agent
+    # 0 moves at every step.
+    assert (trace["agent_steps"], trace["off_goal"], trace["still_off_goal"]) == (18, 15, 12)
+    # With agent 2 at (1, 0), below the goal, the same departures happen beside another agent.
+    near = trace_case(_trajectory(path, others=((0, 2), (1, 0))), GOALS, success=False)
+    assert (near["on_goal_beside"], near["departures_beside"], near["on_goal_alone"]) == (3, 3, 0)
+    # The last 2 steps hold one departure (step 5 to 6): not flickering.
+    assert trace_case(_trajectory(path), GOALS, success=False, window=2)["flickering"] == 0
+    # A solved case has no flickering agents.
+    assert trace_case(_trajectory(path), GOALS, success=True)["flickering"] == 0
+
+
+def test_all_but_k_is_the_first_step_with_that_many_on_goal():
+    positions = np.array([[[1, 0], [1, 1], [5, 5]], [[0, 0], [1, 1], [5, 5]], [[0, 0], [0, 1], [5, 5]]])
+    trace = trace_case(positions, GOALS, success=True, failed_moves=3)
+    assert trace["all_but"] == {1: 1, 0: 2} and trace["failed_moves"] == 3
+    assert trace["on_goal"] == [1, 2, 3] and trace["off_at_end"] == 0
+
+
+def test_trace_refuses_bad_shapes():
+    with pytest.raises(ValueError, match="positions must be"):
+        trace_case(np.zeros((3, 2, 2)), GOALS, success=False)
+    with pytest.raises(ValueError, match="window must be >= 1"):
+        trace_case(np.zeros((3, 3, 2)), GOALS, success=False, window=0)
+
+
+def test_summary_splits_tail_failures_from_jams_and_leaves_out_plans_that_gave_up():
+    def fake(success, off, flick=0, plan_failed=False):
+        return {"n_agents": 8, "success": success, "plan_failed": plan_failed, "steps": 40 if success else 100,
+                "off_at_end": off, "all_but": {5: 10, 1: 20 if success else None, 0: 40 if success else None},
+                "on_goal_beside": 10, "departures_beside": 2, "on_goal_alone": 5, "departures_alone": 0,
+                "flickering": flick, "agent_steps": 80, "off_goal": 40, "still_off_goal": 10, "failed_moves": 4}
+    traces = [fake(True, 0), fake(False, 2, flick=3), fake(False, 7), fake(False, 8, plan_failed=True)]
+    s = summarize(traces, max_steps=100, tail_agents=5)
+    assert (s["cases"], s["successes"], s["plan_failures"]) == (4, 1, 1)
+    assert (s["tail_failures"], s["jams"]) == (1, 1)  # the plan that gave up is neither
+    assert s["average_step"] == (40 + 100 * 3) / 4
+    assert s["median_off_at_end"] == 4.5
+    assert s["median_all_but"] == {"5": 10.0, "1": 20.0, "0": 40.0}
+    assert s["departure_rate_beside"] == pytest.approx(6 / 30) and s["departure_rate_alone"] == 0
+    assert s["failed_with_flicker"] == 1 and s["mean_flickering"] == 1.5
+    assert s["still_off_goal_share"] == 0.25 and s["failed_move_rate"] == 0.05
+    with pytest.raises(ValueError, match="no cases"):
+        summarize([], 100, 5)
+
+
+def test_failure_modes_cli_with_expert_row(repo_root, tmp_path, two_random_models):
+    model = two_random_models[0]
+    out = tmp_path / "fm"
+    run = subprocess.run([str(repo_root / "scripts" / "failure_modes"), model, "--sizes", "2", "3", "--cases", "2",
+                          "--map-size", "10", "--max-steps", "20", "--expert", "--out", str(out), "--no-progress"],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    data = json.loads((out / "failures.json").read_text())
+    assert set(data["summaries"]) == {model, "ODrM* (epsilon 10)"}
+    for label, by_size in data["summaries"].items():
+        assert set(by_size) == {"2", "3"}
+        for n, s in by_size.items():
+            assert s["cases"] == 2 and 0 <= s["successes"] <= 2
+            assert len(data["traces"][label][n]) == 2
+    # ODrM* solves these small open cases; its trajectories end with every agent on its goal.
+    expert = data["traces"]["ODrM* (epsilon 10)"]
+    assert all(t["success"] and t["on_goal"][-1] == t["n_agents"] for cases in expert.values() for t in cases)
+    assert (out / "on_goal.png").stat().st_size > 1000
+    assert run.stdout.count("| ODrM* (epsilon 10) |") == 2
+
+
+def test_failure_modes_cli_refusals(repo_root, tmp_path):
+    script = str(repo_root / "scripts" / "failure_modes")
+    missing = subprocess.run([script, str(tmp_path / "nope.pt")], capture_output=True, text=True, timeout=120)
+    assert missing.returncode == 2 and "nope.pt" in missing.stderr
+    bad = subprocess.run([script, str(tmp_path / "nope.pt"), "--window", "0"], capture_output=True, text=True,
+                         timeout=120)
+    assert bad.returncode == 2 and "--window" in bad.stderr
