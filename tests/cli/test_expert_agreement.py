@@ -8,7 +8,7 @@ import numpy as np
 
 import pytest
 
-from mapf_policy.train.agreement import Setup, model_agreement, shared_agreement, situations, tally
+from mapf_policy.train.agreement import BESIDE, Setup, model_agreement, shared_agreement, situations, tally
 from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
 
 
@@ -24,21 +24,26 @@ def _view(on_goal: bool, others: int) -> np.ndarray:
 
 
 def test_situations_and_tally_count_by_hand():
-    fov = np.stack([_view(True, 0), _view(True, 5), _view(False, 1), _view(False, 3), _view(False, 4)])
+    beside = _view(True, 0)
+    beside[1, 3, 4] = 1  # on its goal, another agent right above it
+    fov = np.stack([_view(True, 0), _view(True, 5), _view(False, 1), _view(False, 3), _view(False, 4), beside])
     masks = situations(fov)
-    assert masks["on goal, 0-1 in view"].tolist() == [True, False, False, False, False]
-    assert masks["on goal, 4+ in view"].tolist() == [False, True, False, False, False]
-    assert masks["off goal, 0-1 in view"].tolist() == [False, False, True, False, False]
-    assert masks["off goal, 2-3 in view"].tolist() == [False, False, False, True, False]
-    assert masks["off goal, 4+ in view"].tolist() == [False, False, False, False, True]
-    assert np.sum([m for m in masks.values()], axis=0).tolist() == [1] * 5  # every row in one bucket
-    q = np.eye(5)[[0, 0, 1, 2, 3]]               # argmax: 0, 0, 1, 2, 3
-    expert = np.array([0, 1, 1, -1, 3])          # row 3 unlabelled
+    assert masks["on goal, 0-1 in view"].tolist() == [True, False, False, False, False, True]
+    assert masks["on goal, 4+ in view"].tolist() == [False, True, False, False, False, False]
+    assert masks["off goal, 0-1 in view"].tolist() == [False, False, True, False, False, False]
+    assert masks["off goal, 2-3 in view"].tolist() == [False, False, False, True, False, False]
+    assert masks["off goal, 4+ in view"].tolist() == [False, False, False, False, True, False]
+    buckets = [m for name, m in masks.items() if name != BESIDE]
+    assert np.sum(buckets, axis=0).tolist() == [1] * 6  # every row in one crowd bucket
+    assert masks[BESIDE].tolist() == [False, False, False, False, False, True]  # the others stand far away
+    q = np.eye(5)[[0, 0, 1, 2, 3, 4]]            # argmax: 0, 0, 1, 2, 3, 4
+    expert = np.array([0, 1, 1, -1, 3, 0])       # row 3 unlabelled
     t = tally(q, expert, fov)
-    assert t["all"] == {"rows": 4, "agree": 3}
-    assert t["on goal, 4+ in view"] == {"rows": 1, "agree": 0}
-    assert t["off goal, 2-3 in view"] == {"rows": 0, "agree": 0}
-    assert t["off goal, 4+ in view"] == {"rows": 1, "agree": 1}
+    assert t["all"] == {"rows": 5, "agree": 3, "label_moves": 3, "argmax_moves": 3}
+    assert t["on goal, 4+ in view"] == {"rows": 1, "agree": 0, "label_moves": 1, "argmax_moves": 0}
+    assert t["off goal, 2-3 in view"] == {"rows": 0, "agree": 0, "label_moves": 0, "argmax_moves": 0}
+    assert t["off goal, 4+ in view"] == {"rows": 1, "agree": 1, "label_moves": 1, "argmax_moves": 1}
+    assert t[BESIDE] == {"rows": 1, "agree": 0, "label_moves": 0, "argmax_moves": 1}
 
 
 def test_cli_reports_every_model_and_refuses_missing(repo_root, tmp_path, two_random_models):
@@ -53,7 +58,7 @@ def test_cli_reports_every_model_and_refuses_missing(repo_root, tmp_path, two_ra
     for r in data["results"].values():
         t = r["tallies"]
         assert t["all"]["rows"] > 0 and r["episodes"] == 2
-        assert sum(v["rows"] for k, v in t.items() if k != "all") == t["all"]["rows"]
+        assert sum(v["rows"] for k, v in t.items() if k not in ("all", BESIDE)) == t["all"]["rows"]
         assert all(0 <= v["agree"] <= v["rows"] for v in t.values())
     assert "off goal, 4+ in view" in run.stdout and "episodes solved" in run.stdout
     missing = subprocess.run([script, str(tmp_path / "nope.pt")], capture_output=True, text=True, timeout=120)

@@ -8,6 +8,9 @@ settled agents greedy, no epsilon), labels every visited state with the expert (
 budget is spent, and reports agreement per situation:
   on goal   the agent stands on its goal (action_selection.on_goal);
   crowd     other agents in its field of view: 0-1, 2-3, 4 or more.
+Those split the rows. One more situation overlaps them: "on goal, agent beside" (on its goal with another
+agent in a neighbour cell), where a line under the table says how often the label and the model's argmax
+are a move: the situation in which agents step off their goals (scripts/failure_modes).
 Each model meets the same instances but visits its own states, which is what its behaviour depends on.
 With --states-from REF, REF alone plays the episodes and every model is scored on REF's labelled states:
 the same rows for every model, so differences are the models' and not their visits' (the expert labels
@@ -34,7 +37,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from mapf_policy.action_selection import on_goal
+from mapf_policy.action_selection import on_goal, settled
 from mapf_policy.config import EXPERT_ORDERS
 from mapf_policy.inference import InferenceNet
 from mapf_policy.model_io import load_model
@@ -48,8 +51,13 @@ from mapf_world.env import MapfEnv
 CROWDS = (("0-1", 0, 1), ("2-3", 2, 3), ("4+", 4, 10**9))
 
 
+BESIDE = "on goal, agent beside"
+
+
 def situations(fov: np.ndarray) -> dict:
-    """(B,) bool masks by situation from (B, 6, l, l) observations: 'on goal' / 'off goal' x crowd bucket."""
+    """(B,) bool masks by situation from (B, 6, l, l) observations: 'on goal' / 'off goal' x crowd bucket,
+    which split the rows, and BESIDE (on its goal with another agent in a neighbour cell: not settled), which
+    overlaps the on-goal buckets."""
     c = fov.shape[-1] // 2
     goal = on_goal(fov)
     others = fov[:, 1].reshape(len(fov), -1).sum(axis=1) - fov[:, 1, c, c]
@@ -57,21 +65,27 @@ def situations(fov: np.ndarray) -> dict:
     for where, mask in (("on goal", goal), ("off goal", ~goal)):
         for label, lo, hi in CROWDS:
             out[f"{where}, {label} in view"] = mask & (others >= lo) & (others <= hi)
+    out[BESIDE] = goal & ~settled(fov)
     return out
+
+
+TALLY_FIELDS = ("rows", "agree", "label_moves", "argmax_moves")
 
 
 def tally(q: np.ndarray, expert: np.ndarray, fov: np.ndarray) -> dict:
-    """{situation: {rows, agree}} counts over the labelled rows (expert >= 0), plus 'all'."""
+    """{situation: counts} over the labelled rows (expert >= 0), plus 'all'. Counts: rows, agree (argmax Q =
+    label), label_moves (the label is a move, not stay), argmax_moves (the argmax is a move)."""
     labelled = expert >= 0
-    agree = (q.argmax(axis=1) == expert) & labelled
-    out = {"all": {"rows": int(labelled.sum()), "agree": int(agree.sum())}}
-    for name, mask in situations(fov).items():
-        out[name] = {"rows": int((mask & labelled).sum()), "agree": int((mask & agree).sum())}
-    return out
+    best = q.argmax(axis=1)
+    masks = {"all": np.ones(len(expert), dtype=bool), **situations(fov)}
+    return {name: {"rows": int((mask & labelled).sum()), "agree": int((mask & labelled & (best == expert)).sum()),
+                   "label_moves": int((mask & labelled & (expert > 0)).sum()),
+                   "argmax_moves": int((mask & labelled & (best > 0)).sum())}
+            for name, mask in masks.items()}
 
 
 def add_tallies(a: dict, b: dict) -> dict:
-    return {k: {f: a.get(k, {}).get(f, 0) + v[f] for f in ("rows", "agree")} for k, v in b.items()}
+    return {k: {f: a.get(k, {}).get(f, 0) + v[f] for f in TALLY_FIELDS} for k, v in b.items()}
 
 
 @dataclass(frozen=True)
@@ -224,6 +238,12 @@ def markdown(results: dict, setup: Setup, shared: bool = False) -> str:
         rows.append(f"| {name} | " + " | ".join(_cell(c[1].get(name, {"rows": 0, "agree": 0})) for c in columns) + " |")
     if not shared:
         rows.append("| episodes solved | " + " | ".join(c[2] for c in columns) + " |")
+    rows.append("")
+    for p, r in results.items():  # how often the labels and each model's argmax leave a goal beside an agent
+        b = r["tallies"].get(BESIDE, {"rows": 0})
+        if b["rows"]:
+            rows.append(f"{Path(p).name} vs {first}, {BESIDE}: the label is a move in {b['label_moves'] / b['rows']:.3f} "
+                        f"and the model's argmax in {b['argmax_moves'] / b['rows']:.3f} of {b['rows']} rows")
     return "\n".join(rows)
 
 
