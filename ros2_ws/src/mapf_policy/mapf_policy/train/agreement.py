@@ -242,8 +242,9 @@ def markdown(results: dict, setup: Setup, shared: bool = False) -> str:
     for p, r in results.items():  # how often the labels and each model's argmax leave a goal beside an agent
         b = r["tallies"].get(BESIDE, {"rows": 0})
         if b["rows"]:
-            rows.append(f"{Path(p).name} vs {first}, {BESIDE}: the label is a move in {b['label_moves'] / b['rows']:.3f} "
-                        f"and the model's argmax in {b['argmax_moves'] / b['rows']:.3f} of {b['rows']} rows")
+            rows.append(f"{Path(p).name} vs {first}, {BESIDE}: the label is a move in "
+                        f"{b['label_moves'] / b['rows']:.3f} and the model's argmax in "
+                        f"{b['argmax_moves'] / b['rows']:.3f} of {b['rows']} rows")
     return "\n".join(rows)
 
 

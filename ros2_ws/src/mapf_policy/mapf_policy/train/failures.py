@@ -85,6 +85,10 @@ def _rate(num: int, den: int) -> float | None:
     return num / den if den else None
 
 
+def _median(values: list) -> float | None:
+    return float(np.median(values)) if values else None
+
+
 def summarize(traces: list[dict], max_steps: int, tail_agents: int) -> dict:
     """One team size's traces -> the figures of the table (failures count max_steps in the average step).
     Cases a planner gave up on count as failures but enter no other figure."""
@@ -93,20 +97,23 @@ def summarize(traces: list[dict], max_steps: int, tail_agents: int) -> dict:
     played = [t for t in traces if not t.get("plan_failed", False)]
     failed = [t for t in played if not t["success"]]
     n = traces[0]["n_agents"]
+
+    def total(key: str) -> int:
+        return sum(t[key] for t in played)
+
     return {
         "cases": len(traces), "successes": sum(t["success"] for t in traces),
         "plan_failures": len(traces) - len(played),
         "average_step": float(np.mean([t["steps"] if t["success"] else max_steps for t in traces])),
         "tail_failures": sum(t["off_at_end"] <= tail_agents for t in failed),
         "jams": sum(t["off_at_end"] > tail_agents for t in failed),
-        "median_off_at_end": float(np.median([t["off_at_end"] for t in failed])) if failed else None,
-        "median_all_but": {str(k): (float(np.median(v)) if (v := [t["all_but"][k] for t in played
-                                                                    if t["all_but"][k] is not None]) else None)
+        "median_off_at_end": _median([t["off_at_end"] for t in failed]),
+        "median_all_but": {str(k): _median([t["all_but"][k] for t in played if t["all_but"][k] is not None])
                            for k in ALL_BUT if k < n},
-        "departure_rate_beside": _rate(sum(t["departures_beside"] for t in played), sum(t["on_goal_beside"] for t in played)),
-        "departure_rate_alone": _rate(sum(t["departures_alone"] for t in played), sum(t["on_goal_alone"] for t in played)),
-        "still_off_goal_share": _rate(sum(t["still_off_goal"] for t in played), sum(t["off_goal"] for t in played)),
-        "failed_move_rate": _rate(sum(t["failed_moves"] for t in played), sum(t["agent_steps"] for t in played)),
+        "departure_rate_beside": _rate(total("departures_beside"), total("on_goal_beside")),
+        "departure_rate_alone": _rate(total("departures_alone"), total("on_goal_alone")),
+        "still_off_goal_share": _rate(total("still_off_goal"), total("off_goal")),
+        "failed_move_rate": _rate(total("failed_moves"), total("agent_steps")),
         "failed_with_flicker": sum(t["flickering"] > 0 for t in failed),
         "mean_flickering": float(np.mean([t["flickering"] for t in failed])) if failed else None,
     }
@@ -141,10 +148,10 @@ def _fmt(v, spec: str = ".1f") -> str:
 
 def markdown(summaries: dict, tail_agents: int) -> str:
     """summaries: {row label (model or expert): {team size: summary}}."""
-    rows = ["| solver | agents | solved, avg step | failures: tail (<= %d off) / jam | median off at end | median first step "
-            "with all but 10 / 5 / 1 / 0 on goal | goal departures per step, beside others / alone | failed cases "
-            "with flickering agents (mean number) | off-goal agent-steps without a move | refused moves per agent-step |"
-            % tail_agents, "|---|---|---|---|---|---|---|---|---|---|"]
+    rows = [f"| solver | agents | solved, avg step | failures: tail (<= {tail_agents} off) / jam | median off at end "
+            "| median first step with all but 10 / 5 / 1 / 0 on goal | goal departures per step, beside others / alone "
+            "| failed cases with flickering agents (mean number) | off-goal agent-steps without a move "
+            "| refused moves per agent-step |", "|---|---|---|---|---|---|---|---|---|---|"]
     for label, summary in summaries.items():
         for n, s in summary.items():
             solved = f"{s['successes']}/{s['cases']}, {s['average_step']:.1f}"
