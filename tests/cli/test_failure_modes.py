@@ -108,3 +108,10 @@ def test_failure_modes_cli_refusals(repo_root, tmp_path):
     bad = subprocess.run([script, str(tmp_path / "nope.pt"), "--window", "0"], capture_output=True, text=True,
                          timeout=120)
     assert bad.returncode == 2 and "--window" in bad.stderr
+
+
+def test_median_curve_holds_each_case_at_its_last_count():
+    from mapf_policy.train.failures import _median_curve
+    cases = [{"on_goal": [0, 1, 2]}, {"on_goal": [0, 2, 2, 3, 3]}, {"on_goal": [1, 1]}]
+    # Padded to 5 steps: [0 1 2 2 2], [0 2 2 3 3], [1 1 1 1 1].
+    assert _median_curve(cases, max_steps=4).tolist() == [0, 1, 2, 2, 2]
