@@ -33,11 +33,15 @@ def held_out_cases(sizes, cases: int, seed: int, map_size: int, density: float) 
     return generated_cases(seed, COMPARE_STREAM, sizes, cases, map_size, density)
 
 
+def policy_solver(net: QNetwork, path, rule: ActionRule, sample_seed: int = 0) -> HsclSolver:
+    """The evaluation solver of a loaded model under `rule`, as `scripts/evaluate --solver hscl` builds it."""
+    return HsclSolver("hscl", Policy(net, num_threads=None, rule=rule, seed=sample_seed), sample_seed, Path(path))
+
+
 def evaluate_with_rule(net: QNetwork, path, instances: list, max_steps: int, rule: ActionRule,
                        sample_seed: int, progress: bool) -> dict:
     """Like evaluate_by_size, with actions chosen by `rule` through the evaluation solver (same dict layout)."""
-    policy = Policy(net, num_threads=None, rule=rule, seed=sample_seed)
-    solver = HsclSolver("hscl", policy, sample_seed, Path(path))
+    solver = policy_solver(net, path, rule, sample_seed)
     desc = Path(path).parent.name + "/" + Path(path).name
     outcomes = []
     for k, inst in enumerate(tqdm(instances, desc=desc, unit="case", disable=not progress)):

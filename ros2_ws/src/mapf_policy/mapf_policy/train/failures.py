@@ -29,11 +29,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from mapf_policy.action_selection import ActionRule
 from mapf_policy.model_io import load_model
-from mapf_policy.policy import Policy
-from mapf_policy.solver import HsclSolver
-from mapf_policy.train.compare import add_rule_arguments, held_out_cases, rule_from_args
+from mapf_policy.train.compare import add_rule_arguments, held_out_cases, policy_solver, rule_from_args
 from mapf_world.evaluate import run_case
 from mapf_world.solvers import PLAN_FAILED_REASONS, get_solver
 
@@ -117,12 +114,6 @@ def summarize(traces: list[dict], max_steps: int, tail_agents: int) -> dict:
         "failed_with_flicker": sum(t["flickering"] > 0 for t in failed),
         "mean_flickering": float(np.mean([t["flickering"] for t in failed])) if failed else None,
     }
-
-
-def policy_solver(model, rule: ActionRule, sample_seed: int = 0) -> HsclSolver:
-    """The evaluation solver of a model file under `rule`, as `scripts/evaluate --solver hscl` builds it."""
-    net, _, _ = load_model(model)  # a clear error for a missing, corrupt or foreign file
-    return HsclSolver("hscl", Policy(net, num_threads=None, rule=rule, seed=sample_seed), sample_seed, Path(model))
 
 
 def expert_solver(time_limit: float = 10.0):
@@ -232,7 +223,8 @@ def main(argv=None) -> int:
     instances = held_out_cases(args.sizes, args.cases, args.seed, args.map_size, args.density)
     try:
         rule = rule_from_args(args)
-        solvers = {str(args.model): policy_solver(args.model, rule, args.sample_seed)}
+        net, _, _ = load_model(args.model)  # a clear error for a missing, corrupt or foreign file
+        solvers = {str(args.model): policy_solver(net, args.model, rule, args.sample_seed)}
         if args.expert:
             solvers[EXPERT_LABEL] = expert_solver(args.expert_time_limit)
         traces = {label: run(solver, instances, args.max_steps, args.window, progress=not args.no_progress,
