@@ -7,7 +7,8 @@ import subprocess
 import numpy as np
 import pytest
 
-from mapf_policy.train.failures import beside_others, summarize, trace_case
+from mapf_policy.train.failures import (REFUSAL_CAUSES, beside_others, case_actions, refusal_causes, summarize,
+                                        trace_case)
 
 GOALS = np.array([[0, 0], [0, 1], [5, 5]])
 
@@ -51,6 +52,67 @@ def test_all_but_k_is_the_first_step_with_that_many_on_goal():
     trace = trace_case(positions, GOALS, success=True, failed_moves=3)
     assert trace["all_but"] == {1: 1, 0: 2} and trace["failed_moves"] == 3
     assert trace["on_goal"] == [1, 2, 3] and trace["off_at_end"] == 0
+
+
+def _causes(cells, actions, goals=None, grid=None) -> dict:
+    """The non-zero refusal causes of one joint step on a free 5x5 grid (obstacle at (4, 4))."""
+    if grid is None:
+        grid = np.zeros((5, 5), dtype=np.uint8)
+        grid[4, 4] = 1
+    cells = np.array(cells)
+    goals = np.array(goals) if goals is not None else np.full_like(cells, 9)  # 9: nobody on its goal
+    return {k: v for k, v in refusal_causes(grid, cells, np.array(actions), goals).items() if v}
+
+
+def test_refusal_causes_name_what_stood_in_the_way():
+    # Actions: 0 stay, 1 up, 2 down, 3 left, 4 right.
+    assert _causes([[3, 4], [0, 0]], [2, 1]) == {"obstacle": 2}  # into the obstacle; off the map
+    assert _causes([[0, 0], [0, 1]], [4, 3]) == {"swap": 2}  # head-on: both refused
+    # The occupant of the target waits: on its goal, or off it.
+    assert _causes([[0, 0], [0, 1]], [4, 0], goals=[[4, 0], [0, 1]]) == {"occupant waited on its goal": 1}
+    assert _causes([[0, 0], [0, 1]], [4, 0]) == {"occupant waited off its goal": 1}
+    # A queue: agent 2 waits at (0, 2), so agent 1's move fails, and agent 0 behind it fails in cascade.
+    assert _causes([[0, 0], [0, 1], [0, 2]], [4, 4, 0]) == {"occupant waited off its goal": 1, "occupant refused": 1}
+    # Two movers into the free cell (0, 1): the lower index gets it.
+    assert _causes([[0, 0], [1, 1]], [4, 1]) == {"contest": 1}
+    # Agent 1 leaves (0, 1) and agent 0 follows it in; agent 2 also wanted the vacated cell.
+    assert _causes([[0, 0], [0, 1], [1, 1]], [4, 4, 1]) == {"contest": 1}
+    # Nothing refused, nothing counted; every cause is always a key.
+    grid = np.zeros((5, 5), dtype=np.uint8)
+    counts = refusal_causes(grid, np.array([[0, 0], [0, 1]]), np.array([2, 4]), np.array([[9, 9], [9, 9]]))
+    assert tuple(counts) == REFUSAL_CAUSES and sum(counts.values()) == 0
+
+
+def test_case_actions_splits_still_off_goal_steps_into_waits_and_refused_moves():
+    class Case:
+        grid = np.zeros((5, 5), dtype=np.uint8)
+        goals = np.array([[0, 2], [4, 0]])
+    # Step 0: a head-on swap, both refused. Step 1: agent 0 waits, agent 1 steps down.
+    positions = np.array([[[0, 0], [0, 1]], [[0, 0], [0, 1]], [[0, 0], [1, 1]]])
+    actions = [np.array([4, 3]), np.array([0, 2])]
+    chosen = case_actions(Case, positions, actions)
+    assert chosen["refusals"]["swap"] == 2 and sum(chosen["refusals"].values()) == 2
+    assert (chosen["waits_off_goal"], chosen["refused_off_goal"]) == (1, 2)
+    trace = trace_case(positions, Case.goals, success=False, chosen=chosen)
+    assert trace["still_off_goal"] == trace["waits_off_goal"] + trace["refused_off_goal"] == 3
+    with pytest.raises(ValueError, match="1 joint actions for a trajectory of 2 steps"):
+        case_actions(Case, positions, actions[:1])
+
+
+def test_summary_gives_refusal_shares_over_the_cases_that_recorded_them():
+    base = trace_case(_trajectory([(0, 1), (0, 0)]), GOALS, success=True)
+    summary = summarize([base], 10, 5)
+    assert base["refusals"] is None and summary["refusal_shares"] is None and summary["wait_off_goal_share"] is None
+    zero = dict.fromkeys(REFUSAL_CAUSES, 0)
+    first = dict(base, refusals=zero | {"swap": 3, "contest": 1}, waits_off_goal=1, refused_off_goal=1)
+    second = dict(base, refusals=zero | {"swap": 1, "occupant refused": 3}, waits_off_goal=0, refused_off_goal=2)
+    summary = summarize([first, second, base], 10, 5)
+    shares = summary["refusal_shares"]
+    assert shares["swap"] == 0.5 and shares["contest"] == 0.125 and shares["occupant refused"] == 0.375
+    assert shares["obstacle"] == 0 and sum(shares.values()) == pytest.approx(1.0)
+    # Each trace has 3 off-goal agent-steps (agents 1 and 2 twice, agent 0 once); `base` recorded nothing.
+    assert base["off_goal"] == 3
+    assert summary["wait_off_goal_share"] == 1 / 6 and summary["refused_off_goal_share"] == 3 / 6
 
 
 def test_trace_refuses_bad_shapes():
@@ -98,7 +160,16 @@ def test_failure_modes_cli_with_expert_row(repo_root, tmp_path, two_random_model
     expert = data["traces"]["ODrM* (epsilon 10)"]
     assert all(t["success"] and t["on_goal"][-1] == t["n_agents"] for cases in expert.values() for t in cases)
     assert (out / "on_goal.png").stat().st_size > 1000
-    assert run.stdout.count("| ODrM* (epsilon 10) |") == 2
+    assert run.stdout.count("| ODrM* (epsilon 10) |") == 4  # two sizes, in each of the two tables
+    # Refusals by cause: the recorded causes add up to the harness's count in every played case (run()
+    # also checks it), and ODrM*'s plans have none.
+    assert "refused moves by cause" in run.stdout
+    for label, by_size in data["traces"].items():
+        for cases in by_size.values():
+            assert all(sum(t["refusals"].values()) == t["failed_moves"] for t in cases)
+            # An off-goal agent that did not move either chose to wait or had its move refused.
+            assert all(t["still_off_goal"] == t["waits_off_goal"] + t["refused_off_goal"] for t in cases)
+    assert all(t["failed_moves"] == 0 for cases in expert.values() for t in cases)
 
 
 def test_failure_modes_cli_refusals(repo_root, tmp_path):

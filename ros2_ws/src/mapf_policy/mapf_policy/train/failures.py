@@ -10,11 +10,18 @@ the trajectories:
   no neighbour greedy, so departures happen almost only beside others);
 - **off-goal agent-steps without a move**: waits and refused moves of agents not on their goals, and
   **refused moves** per agent-step (into an agent, an obstacle or a swap; the harness counts them);
+- a second table, from the actions the solver chose: off-goal agent-steps split into **chosen waits** and
+  **refused moves** (together the steps without a move above), and **refused moves by cause**: each move
+  the rules refused, by what stood in its way, in this order: an obstacle or the map's edge; a *swap*
+  (the agent in the target cell tried to move into the mover's cell); the target's occupant *waited*
+  (chose to stay), on its goal or off it; the occupant's own move was refused (a *cascade* behind a
+  blocked agent); or a *contest* (another mover got the cell, free or vacated in the same step; the
+  lowest index wins);
 - **flickering agents**: in a failed case, agents that left their goal at least twice in the last
   `--window` steps. A case succeeds only at a step where every agent is on its goal, so a few agents
   that keep stepping off and back can hold a nearly finished team past the step limit.
-`--expert` adds the same figures for ODrM*'s plans on the same cases. It writes a Markdown table,
-`failures.json` and `on_goal.png` (agents on their goals over time, one
+`--expert` adds the same figures for ODrM*'s plans on the same cases. It prints the two Markdown tables and
+writes `failures.json` and `on_goal.png` (agents on their goals over time, one
 line per case; with `--expert`, the median of ODrM*'s plans in blue).
   scripts/failure_modes models/hscl.pt --sizes 32 64 --cases 40 --seed 26 --out runs/failures
 """
@@ -32,11 +39,16 @@ from tqdm import tqdm
 from mapf_policy.model_io import load_model
 from mapf_policy.train.compare import add_rule_arguments, held_out_cases, policy_solver, rule_from_args
 from mapf_world.evaluate import run_case
+from mapf_world.grid import DELTAS
+from mapf_world.rules import resolve_moves
 from mapf_world.solvers import PLAN_FAILED_REASONS, get_solver
 
 ALL_BUT = (10, 5, 1, 0)  # "all but k agents on their goals"
 EXPERT_LABEL = "ODrM* (epsilon 10)"
 NEIGHBOURS = np.array([(-1, 0), (1, 0), (0, -1), (0, 1)])
+# Causes of a refused move, in the order they are tested (the first that applies names it).
+REFUSAL_CAUSES = ("obstacle", "swap", "occupant waited on its goal", "occupant waited off its goal",
+                  "occupant refused", "contest")
 
 
 def beside_others(positions: np.ndarray) -> np.ndarray:
@@ -50,11 +62,39 @@ def beside_others(positions: np.ndarray) -> np.ndarray:
     return out
 
 
+def refusal_causes(grid: np.ndarray, positions: np.ndarray, actions: np.ndarray, goals: np.ndarray) -> dict:
+    """{cause: count} of the moves the rules refuse in one joint step (REFUSAL_CAUSES, each tested in that
+    order). positions (N, 2) at the start of the step, actions (N,) 0..4 as the agents chose them."""
+    grid, positions, goals = np.asarray(grid), np.asarray(positions, dtype=np.int64), np.asarray(goals)
+    actions = np.asarray(actions, dtype=np.int64)
+    _, failed = resolve_moves(grid, positions, actions)
+    counts = dict.fromkeys(REFUSAL_CAUSES, 0)
+    h, w = grid.shape
+    target = positions + DELTAS[actions]
+    occupant = {(int(r), int(c)): j for j, (r, c) in enumerate(positions)}
+    for i in np.flatnonzero(failed):
+        r, c = (int(v) for v in target[i])
+        j = occupant.get((r, c))
+        if not (0 <= r < h and 0 <= c < w) or grid[r, c]:
+            cause = "obstacle"
+        elif j is not None and actions[j] != 0 and (target[j] == positions[i]).all():
+            cause = "swap"
+        elif j is not None and actions[j] == 0:
+            cause = "occupant waited " + ("on its goal" if (positions[j] == goals[j]).all() else "off its goal")
+        elif j is not None and failed[j]:
+            cause = "occupant refused"
+        else:
+            cause = "contest"
+        counts[cause] += 1
+    return counts
+
+
 def trace_case(positions: np.ndarray, goals: np.ndarray, success: bool, window: int = 64,
-               plan_failed: bool = False, failed_moves: int = 0) -> dict:
+               plan_failed: bool = False, failed_moves: int = 0, chosen: dict | None = None) -> dict:
     """What one case's trajectory shows. positions (T + 1, N, 2): the cells from the start to the end.
     `plan_failed`: a planner gave up before moving (the trajectory is the start only). `failed_moves`:
-    the moves the rules refused during the case (the harness counts them)."""
+    the moves the rules refused during the case (the harness counts them). `chosen`: what the recorded
+    actions show (case_actions), copied into the trace; None where they were not recorded."""
     positions, goals = np.asarray(positions), np.asarray(goals)
     if positions.ndim != 3 or positions.shape[2] != 2 or goals.shape != positions.shape[1:]:
         raise ValueError(f"positions must be (T + 1, N, 2) and goals (N, 2), got {positions.shape} and {goals.shape}")
@@ -75,6 +115,9 @@ def trace_case(positions: np.ndarray, goals: np.ndarray, success: bool, window: 
         "on_goal_alone": int((on[:-1] & ~beside).sum()), "departures_alone": int((departed & ~beside).sum()),
         "flickering": flickering, "agent_steps": int(on[:-1].size), "off_goal": int((~on[:-1]).sum()),
         "still_off_goal": int((~on[:-1] & still).sum()), "failed_moves": int(failed_moves),
+        "refusals": dict(chosen["refusals"]) if chosen is not None else None,
+        "waits_off_goal": chosen["waits_off_goal"] if chosen is not None else None,
+        "refused_off_goal": chosen["refused_off_goal"] if chosen is not None else None,
     }
 
 
@@ -86,6 +129,13 @@ def _median(values: list) -> float | None:
     return float(np.median(values)) if values else None
 
 
+def _refusal_shares(traces: list[dict]) -> dict | None:
+    """{cause: share of the refused moves} over the traces that recorded causes; None without refusals."""
+    counted = [t["refusals"] for t in traces if t.get("refusals") is not None]
+    total = sum(sum(r.values()) for r in counted)
+    return {k: sum(r[k] for r in counted) / total for k in REFUSAL_CAUSES} if total else None
+
+
 def summarize(traces: list[dict], max_steps: int, tail_agents: int) -> dict:
     """One team size's traces -> the figures of the table (failures count max_steps in the average step).
     Cases a planner gave up on count as failures but enter no other figure."""
@@ -93,6 +143,7 @@ def summarize(traces: list[dict], max_steps: int, tail_agents: int) -> dict:
         raise ValueError("no cases to summarize")
     played = [t for t in traces if not t.get("plan_failed", False)]
     failed = [t for t in played if not t["success"]]
+    recorded = [t for t in played if t.get("waits_off_goal") is not None]
     n = traces[0]["n_agents"]
 
     def total(key: str) -> int:
@@ -111,6 +162,11 @@ def summarize(traces: list[dict], max_steps: int, tail_agents: int) -> dict:
         "departure_rate_alone": _rate(total("departures_alone"), total("on_goal_alone")),
         "still_off_goal_share": _rate(total("still_off_goal"), total("off_goal")),
         "failed_move_rate": _rate(total("failed_moves"), total("agent_steps")),
+        "refusal_shares": _refusal_shares(played),
+        "wait_off_goal_share": _rate(sum(t["waits_off_goal"] for t in recorded),
+                                     sum(t["off_goal"] for t in recorded)) if recorded else None,
+        "refused_off_goal_share": _rate(sum(t["refused_off_goal"] for t in recorded),
+                                        sum(t["off_goal"] for t in recorded)) if recorded else None,
         "failed_with_flicker": sum(t["flickering"] > 0 for t in failed),
         "mean_flickering": float(np.mean([t["flickering"] for t in failed])) if failed else None,
     }
@@ -121,15 +177,53 @@ def expert_solver(time_limit: float = 10.0):
     return get_solver("odrmstar", epsilon=10.0, time_limit=time_limit)
 
 
+class _Recorder:
+    """Evaluation-harness solver protocol around another solver: keeps the actions of the current case."""
+
+    def __init__(self, solver):
+        self.solver, self.actions = solver, []
+
+    def reset(self, env) -> None:
+        self.actions = []
+        self.solver.reset(env)
+
+    def act(self, obs: dict) -> np.ndarray:
+        actions = self.solver.act(obs)
+        self.actions.append(np.array(actions, dtype=np.int64))
+        return actions
+
+
+def case_actions(inst, positions: np.ndarray, actions: list) -> dict:
+    """What the chosen actions of a played case show: {"refusals": refusal_causes summed over the steps,
+    "waits_off_goal" / "refused_off_goal": off-goal agent-steps whose action was to stay / was a refused
+    move}. positions (T + 1, N, 2) and the T joint actions."""
+    if len(actions) != len(positions) - 1:
+        raise ValueError(f"{len(actions)} joint actions for a trajectory of {len(positions) - 1} steps")
+    out = {"refusals": dict.fromkeys(REFUSAL_CAUSES, 0), "waits_off_goal": 0, "refused_off_goal": 0}
+    goals = np.asarray(inst.goals)
+    for cells, acts in zip(positions[:-1], actions):
+        for cause, count in refusal_causes(inst.grid, cells, acts, goals).items():
+            out["refusals"][cause] += count
+        off = ~(cells == goals).all(axis=1)
+        out["waits_off_goal"] += int((off & (acts == 0)).sum())
+        out["refused_off_goal"] += int((off & resolve_moves(inst.grid, cells, acts)[1]).sum())
+    return out
+
+
 def run(solver, instances: list, max_steps: int = 256, window: int = 64, progress: bool = True,
         desc: str = "cases") -> dict:
     """{team size (str): [trace per case]}: `solver` (evaluation-harness protocol) on each instance."""
     out: dict[str, list] = {}
+    recorder = _Recorder(solver)
     for k, inst in enumerate(tqdm(instances, desc=desc, unit="case", disable=not progress)):
-        result = run_case(solver, inst, max_steps, k)
+        result = run_case(recorder, inst, max_steps, k)
         plan_failed = result.reason in PLAN_FAILED_REASONS
-        out.setdefault(str(inst.n_agents), []).append(
-            trace_case(result.positions, inst.goals, result.success, window, plan_failed, result.failed_moves))
+        chosen = None if plan_failed else case_actions(inst, result.positions, recorder.actions)
+        if chosen is not None and sum(chosen["refusals"].values()) != result.failed_moves:
+            raise RuntimeError(f"case {k}: {sum(chosen['refusals'].values())} refusals by cause, the harness "
+                               f"counted {result.failed_moves}")
+        out.setdefault(str(inst.n_agents), []).append(trace_case(
+            result.positions, inst.goals, result.success, window, plan_failed, result.failed_moves, chosen))
     return out
 
 
@@ -154,6 +248,20 @@ def markdown(summaries: dict, tail_agents: int) -> str:
                         f"{_fmt(s['departure_rate_alone'], '.3f')} | {s['failed_with_flicker']} "
                         f"({_fmt(s['mean_flickering'])}) | {_fmt(s['still_off_goal_share'], '.3f')} "
                         f"| {_fmt(s['failed_move_rate'], '.3f')} |")
+    return "\n".join(rows)
+
+
+def refusal_markdown(summaries: dict) -> str:
+    """The second table: off-goal agent-steps split into waits and refused moves, and the shares of the
+    refused moves by cause ("-" where nothing was refused)."""
+    rows = ["| solver | agents | off-goal agent-steps: chosen waits / refused moves | "
+            + " | ".join(f"refused: {k}" for k in REFUSAL_CAUSES) + " |", "|---|---|---|" + "---|" * len(REFUSAL_CAUSES)]
+    for label, summary in summaries.items():
+        for n, s in summary.items():
+            shares = s["refusal_shares"]
+            causes = " | ".join(_fmt(shares[k] if shares else None, ".3f") for k in REFUSAL_CAUSES)
+            rows.append(f"| {label} | {n} | {_fmt(s['wait_off_goal_share'], '.3f')} / "
+                        f"{_fmt(s['refused_off_goal_share'], '.3f')} | {causes} |")
     return "\n".join(rows)
 
 
@@ -235,6 +343,8 @@ def main(argv=None) -> int:
     summaries = {label: {n: summarize(t, args.max_steps, args.tail_agents) for n, t in by_size.items()}
                  for label, by_size in traces.items()}
     print(markdown(summaries, args.tail_agents))
+    print("\nWhy off-goal agents do not move, and refused moves by cause (share of all refused moves):\n")
+    print(refusal_markdown(summaries))
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "failures.json").write_text(json.dumps(
