@@ -62,13 +62,14 @@ def beside_others(positions: np.ndarray) -> np.ndarray:
     return out
 
 
-def refusal_causes(grid: np.ndarray, positions: np.ndarray, actions: np.ndarray, goals: np.ndarray) -> dict:
-    """{cause: count} of the moves the rules refuse in one joint step (REFUSAL_CAUSES, each tested in that
-    order). positions (N, 2) at the start of the step, actions (N,) 0..4 as the agents chose them."""
+def refused_moves(grid: np.ndarray, positions: np.ndarray, actions: np.ndarray, goals: np.ndarray) -> np.ndarray:
+    """(N,) int: for each agent whose move the rules refuse in one joint step, the index of its cause in
+    REFUSAL_CAUSES (the first that applies, in that order); -1 for the others. positions (N, 2) at the
+    start of the step, actions (N,) 0..4 as the agents chose them."""
     grid, positions, goals = np.asarray(grid), np.asarray(positions, dtype=np.int64), np.asarray(goals)
     actions = np.asarray(actions, dtype=np.int64)
     _, failed = resolve_moves(grid, positions, actions)
-    counts = dict.fromkeys(REFUSAL_CAUSES, 0)
+    causes = np.full(len(positions), -1, dtype=np.int64)
     h, w = grid.shape
     target = positions + DELTAS[actions]
     occupant = {(int(r), int(c)): j for j, (r, c) in enumerate(positions)}
@@ -85,8 +86,18 @@ def refusal_causes(grid: np.ndarray, positions: np.ndarray, actions: np.ndarray,
             cause = "occupant refused"
         else:
             cause = "contest"
-        counts[cause] += 1
-    return counts
+        causes[i] = REFUSAL_CAUSES.index(cause)
+    return causes
+
+
+def refusal_causes(grid: np.ndarray, positions: np.ndarray, actions: np.ndarray, goals: np.ndarray) -> dict:
+    """{cause: count} of the moves the rules refuse in one joint step (refused_moves, counted)."""
+    return _count_causes(refused_moves(grid, positions, actions, goals))
+
+
+def _count_causes(causes: np.ndarray) -> dict:
+    counts = np.bincount(causes[causes >= 0], minlength=len(REFUSAL_CAUSES))
+    return {k: int(v) for k, v in zip(REFUSAL_CAUSES, counts)}
 
 
 def trace_case(positions: np.ndarray, goals: np.ndarray, success: bool, window: int = 64,
@@ -199,15 +210,13 @@ def case_actions(inst, positions: np.ndarray, actions: list) -> dict:
     move}. positions (T + 1, N, 2) and the T joint actions."""
     if len(actions) != len(positions) - 1:
         raise ValueError(f"{len(actions)} joint actions for a trajectory of {len(positions) - 1} steps")
-    out = {"refusals": dict.fromkeys(REFUSAL_CAUSES, 0), "waits_off_goal": 0, "refused_off_goal": 0}
+    if not actions:  # solved at the start: nothing was chosen
+        return {"refusals": dict.fromkeys(REFUSAL_CAUSES, 0), "waits_off_goal": 0, "refused_off_goal": 0}
     goals = np.asarray(inst.goals)
-    for cells, acts in zip(positions[:-1], actions):
-        for cause, count in refusal_causes(inst.grid, cells, acts, goals).items():
-            out["refusals"][cause] += count
-        off = ~(cells == goals).all(axis=1)
-        out["waits_off_goal"] += int((off & (acts == 0)).sum())
-        out["refused_off_goal"] += int((off & resolve_moves(inst.grid, cells, acts)[1]).sum())
-    return out
+    causes = np.array([refused_moves(inst.grid, cells, acts, goals) for cells, acts in zip(positions[:-1], actions)])
+    off = ~(np.asarray(positions[:-1]) == goals).all(axis=2)  # (T, N)
+    return {"refusals": _count_causes(causes.ravel()), "waits_off_goal": int((off & (np.array(actions) == 0)).sum()),
+            "refused_off_goal": int((off & (causes >= 0)).sum())}
 
 
 def run(solver, instances: list, max_steps: int = 256, window: int = 64, progress: bool = True,
