@@ -32,8 +32,8 @@ Two more rules, also beyond the paper and also from the agent's own knowledge on
   oscillations that sampled agents fall into in crowds, and shortens paths at 16 to 64 agents.
 An ablation, off by default: `goal_stay_bonus` adds to the Q-value of staying for an agent on its goal.
 On held-out 64-agent cases it halved how often agents beside others leave their goals, but solved no more
-cases, and a larger bonus solved far fewer (models/README.md, "How the held-out 32- and 64-agent cases
-fail").
+cases, and a larger bonus solved far fewer (models/EXPERIMENTS.md, "How the held-out 32- and 64-agent
+cases fail").
 All five settings form one typed ActionRule. PAPER_RULE (greedy, no mask, no penalty) is the paper's
 action selection; the default rule was chosen on held-out generated cases, never on the benchmark
 (models/README.md, "Action selection").
