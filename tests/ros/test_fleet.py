@@ -105,6 +105,25 @@ def test_mcap_is_rosbag2_style(run):
     assert n == summary.statistics.message_count
 
 
+def test_mcap_opens_in_rosbags_with_full_qos_and_every_message_decodes(run):
+    from rosbags.highlevel import AnyReader
+    from rosbags.interfaces import QosHistory, QosReliability
+    decoded = 0
+    with AnyReader([run["fleet"].mcap]) as reader:
+        conns = {c.topic: c for c in reader.connections}
+        for kind in ("observation", "action", "cell_move", "cmd_vel", "odom"):
+            (qos,) = conns[f"/robot_0/{kind}"].ext.offered_qos_profiles
+            # The graph does not report a remote publisher's history (rosbag2 writes the same).
+            assert qos.history == QosHistory.UNKNOWN and qos.reliability == QosReliability.RELIABLE
+            assert qos.deadline.sec == 9223372036 and qos.liveliness_lease_duration.nsec == 854775807
+        # /rosout has one publisher per node (world, recorder, 2 per robot), all with one profile.
+        assert len(conns["/rosout"].ext.offered_qos_profiles) == 1
+        for conn, _, raw in reader.messages():
+            reader.deserialize(raw, conn.msgtype)
+            decoded += 1
+    assert decoded == sum(run["log"].counts.values()) > 0
+
+
 def test_velocities_never_exceed_the_limits(run):
     log = run["log"]
     for i in range(3):

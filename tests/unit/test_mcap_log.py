@@ -2,6 +2,7 @@
 import pytest
 
 from mapf_world.mcap_log import SEPARATOR, McapRos2Writer, field_types, message_definition, split_type_name
+from mapf_world.rosbag2_format import QosProfile
 
 FAKE = {
     ("pkg", "Outer"): "# comment\nHeader header\nint32 A=3  # a constant\npkg/Inner[] inners\nInner[<=2] few\nstring<=5 s\n",
@@ -64,7 +65,7 @@ def test_written_file_decodes_with_mcap_ros2(tmp_path):
 
     path = tmp_path / "log.mcap"
     with McapRos2Writer(path) as w:
-        c_odom = w.add_channel("/robot_0/odom", "nav_msgs/msg/Odometry", offered_qos="- history: 3\n")
+        c_odom = w.add_channel("/robot_0/odom", "nav_msgs/msg/Odometry", [QosProfile(depth=10)])
         c_obs = w.add_channel("/robot_0/observation", "mapf_msgs/msg/AgentObservation")
         c_tw = w.add_channel("/robot_0/cmd_vel", "geometry_msgs/msg/Twist")
         assert w.add_channel("/robot_0/odom", "nav_msgs/Odometry") == c_odom

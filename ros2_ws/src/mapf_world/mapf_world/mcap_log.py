@@ -5,7 +5,10 @@
   definition: the type's own .msg text, then every nested type once (depth-first, in order of first
   use), each after a line of 80 '=' and a line "MSG: pkg/Name";
 - one channel per topic, message encoding "cdr" (payloads from rclpy.serialization), with the
-  publishers' QoS as "offered_qos_profiles" metadata when known.
+  metadata keys "offered_qos_profiles" and "topic_type_hash" (rosbag2_format.py);
+- a metadata record "rosbag2" holding the bag metadata (version 9), once at the start and once
+  more, with the message counts, when the file is closed;
+- message sequence numbers count the messages of each channel from 0 (a gap-free record is 0..n-1).
 
 The .msg files are found through the ament index (share/<pkg>/msg/<Name>.msg), so a type from any
 package on AMENT_PREFIX_PATH works, including this project's mapf_msgs.
@@ -14,9 +17,12 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from mcap.writer import CompressionType, Writer
+
+from mapf_world.rosbag2_format import (METADATA_KEY, METADATA_RECORD, QosProfile, TopicRecord, bag_metadata,
+                                       offered_qos_profiles)
 
 PRIMITIVES = frozenset("bool byte char float32 float64 int8 uint8 int16 uint16 int32 uint32 int64 uint64 "
                        "string wstring".split())
@@ -112,16 +118,25 @@ class McapRos2Writer:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._stream = open(self.path, "wb")
         self._writer = Writer(self._stream, chunk_size=chunk_size, compression=comp)
+        # Profile "ros2" as rosbag2; the library field names the writer, as the MCAP spec intends.
         self._writer.start(profile="ros2", library="mapf_world.mcap_log")
         self._definition = definition
         self._schemas: Dict[str, int] = {}
         self._channels: Dict[str, Tuple[int, str]] = {}
-        self._sequence: Dict[int, int] = {}
+        self._topics: Dict[int, TopicRecord] = {}   # channel id -> what the bag metadata says of it
+        self._first_ns: Optional[int] = None
+        self._last_ns = 0
         self.message_count = 0
         self.closed = False
+        self._write_bag_metadata()
+        self._writer.flush()  # header and bag metadata on disk at once: a killed recorder leaves a readable start
 
-    def add_channel(self, topic: str, type_name: str, offered_qos: str = "") -> int:
-        """Channel id of topic (registered once; the type must not change)."""
+    def add_channel(self, topic: str, type_name: str, profiles: Sequence[QosProfile] = (),
+                    type_hash: str = "") -> int:
+        """Channel id of topic (registered once; the type must not change).
+
+        profiles: the QoS offered by the topic's publishers; type_hash: the type's RIHS01 hash.
+        """
         pkg, name = split_type_name(type_name)
         full = f"{pkg}/msg/{name}"
         if topic in self._channels:
@@ -132,22 +147,31 @@ class McapRos2Writer:
         if full not in self._schemas:
             text = self._definition(full)
             self._schemas[full] = self._writer.register_schema(name=full, encoding="ros2msg", data=text.encode())
-        metadata = {"offered_qos_profiles": offered_qos} if offered_qos else {}
+        metadata = {"offered_qos_profiles": offered_qos_profiles(profiles), "topic_type_hash": type_hash}
         cid = self._writer.register_channel(topic=topic, message_encoding="cdr",
                                             schema_id=self._schemas[full], metadata=metadata)
         self._channels[topic] = (cid, full)
-        self._sequence[cid] = 0
+        self._topics[cid] = TopicRecord(topic, full, tuple(profiles), type_hash)
         return cid
 
     def write(self, channel_id: int, data: bytes, log_time_ns: int, publish_time_ns: Optional[int] = None) -> None:
         if self.closed:
             raise RuntimeError(f"{self.path} is closed")
-        seq = self._sequence[channel_id]
-        self._sequence[channel_id] = seq + 1
-        self._writer.add_message(channel_id=channel_id, log_time=int(log_time_ns), data=bytes(data),
+        record = self._topics[channel_id]
+        log_time_ns = int(log_time_ns)
+        self._writer.add_message(channel_id=channel_id, log_time=log_time_ns, data=bytes(data),
                                  publish_time=int(log_time_ns if publish_time_ns is None else publish_time_ns),
-                                 sequence=seq)
+                                 sequence=record.message_count)
+        record.message_count += 1
         self.message_count += 1
+        self._first_ns = log_time_ns if self._first_ns is None else min(self._first_ns, log_time_ns)
+        self._last_ns = max(self._last_ns, log_time_ns)
+
+    def _write_bag_metadata(self) -> None:
+        start = self._first_ns or 0
+        text = bag_metadata(self.path.name, list(self._topics.values()), start,
+                            self._last_ns - start if self.message_count else 0, self.message_count)
+        self._writer.add_metadata(METADATA_RECORD, {METADATA_KEY: text})
 
     def flush(self) -> None:
         """Write the chunk in progress to disk (a crash after this loses nothing written so far)."""
@@ -160,6 +184,7 @@ class McapRos2Writer:
             return
         self.closed = True
         try:
+            self._write_bag_metadata()
             self._writer.finish()
         finally:
             self._stream.close()

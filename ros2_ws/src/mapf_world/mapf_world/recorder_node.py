@@ -18,6 +18,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from mapf_world.mcap_log import McapRos2Writer
+from mapf_world.rosbag2_format import QosProfile
 from mapf_world.node_main import run_node
 
 
@@ -30,25 +31,31 @@ def message_class(type_name: str):
         raise ValueError(f"cannot import message type {type_name!r}: {exc}") from exc
 
 
-def matching_qos(publishers) -> QoSProfile:
-    """A subscription QoS compatible with every publisher (rosbag2's adaptation rule)."""
+def recorder_qos(publishers) -> QoSProfile:
+    """The recorder's subscription QoS: compatible with every publisher, and keeps every sample.
+
+    Reliability and durability follow rosbag2's adaptation rule (reliable / transient local only
+    when every publisher offers it, otherwise a reliable publisher would refuse a best-effort
+    request or vice versa). History is KEEP_ALL, unlike rosbag2's default keep-last: the reader
+    never drops a received sample to make room, so with reliable publishers a recorder that falls
+    behind slows the acknowledgements instead of losing messages (docs/FLEET.md, "MCAP logs").
+    """
     profiles = [p.qos_profile for p in publishers]
     reliable = all(q.reliability == ReliabilityPolicy.RELIABLE for q in profiles)
     latched = all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in profiles)
-    depth = max([100] + [q.depth for q in profiles])
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+    return QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=0,
                       reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
 
 
-def qos_yaml(publishers) -> str:
-    """The publishers' QoS as rosbag2's offered_qos_profiles metadata (a YAML list)."""
-    lines = []
-    for p in publishers:
-        q = p.qos_profile
-        lines += [f"- history: {q.history.name.lower()}", f"  depth: {q.depth}",
-                  f"  reliability: {q.reliability.name.lower()}", f"  durability: {q.durability.name.lower()}"]
-    return "\n".join(lines) + "\n" if lines else ""
+def offered_profile(qos: QoSProfile) -> QosProfile:
+    """An rclpy QoS profile (as graph queries report it) in rosbag2's terms."""
+    return QosProfile(history=qos.history.name.lower(), depth=int(qos.depth),
+                      reliability=qos.reliability.name.lower(), durability=qos.durability.name.lower(),
+                      deadline_ns=qos.deadline.nanoseconds, lifespan_ns=qos.lifespan.nanoseconds,
+                      liveliness=qos.liveliness.name.lower(),
+                      liveliness_lease_duration_ns=qos.liveliness_lease_duration.nanoseconds,
+                      avoid_ros_namespace_conventions=bool(qos.avoid_ros_namespace_conventions))
 
 
 class Recorder(Node):
@@ -96,7 +103,8 @@ class Recorder(Node):
                 continue
             try:
                 cls = message_class(types[0])
-                cid = self.writer.add_channel(topic, types[0], qos_yaml(publishers))
+                cid = self.writer.add_channel(topic, types[0], [offered_profile(p.qos_profile) for p in publishers],
+                                              type_hash=str(getattr(publishers[0], "topic_type_hash", "") or ""))
             except ValueError as exc:
                 self.get_logger().error(f"topic {topic} not recorded: {exc}")
                 self._refused.add(topic)
@@ -106,7 +114,7 @@ class Recorder(Node):
                 self.writer.write(cid, data, log_time_ns=time.time_ns(),
                                   publish_time_ns=info.get("source_timestamp") or None)
 
-            self._subs[topic] = self.create_subscription(cls, topic, on_message, matching_qos(publishers), raw=True)
+            self._subs[topic] = self.create_subscription(cls, topic, on_message, recorder_qos(publishers), raw=True)
             self.get_logger().info(f"recording {topic} [{types[0]}]")
 
     def close(self) -> None:
