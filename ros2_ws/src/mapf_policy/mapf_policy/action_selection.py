@@ -207,3 +207,43 @@ def backtrack_moves(position: np.ndarray, previous: np.ndarray) -> np.ndarray:
     out = (step[:, None, :] == DELTAS[None, :, :]).all(axis=2)
     out[:, 0] = False
     return out
+
+
+class ActionChooser:
+    """One ActionRule applied to Q-values, with the state the rule needs: its own sampling generator and each
+    row's previous cell. Rows are agents, in a fixed order during an episode; `reset` starts a new one.
+    Numpy only: the torch Policy (policy.py) and the robot's RuntimePolicy (runtime_policy.py) share it."""
+
+    def __init__(self, rule: ActionRule | None = None, seed: int | None = 0):
+        if rule is None:
+            rule = ActionRule()
+        if not isinstance(rule, ActionRule):
+            raise ValueError(f"rule must be an ActionRule, got {type(rule).__name__}")
+        self.rule = rule
+        self.reset(seed)
+
+    def reset(self, seed: int | None) -> None:
+        """Restart the sampling generator (an int seed makes runs repeatable; None draws one) and forget every
+        row's previous cell."""
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
+            raise ValueError(f"seed must be an integer >= 0 or None, got {seed!r}")
+        self.rng = np.random.default_rng(seed)
+        self.previous = None  # (B, 2) cells of the last choose() call
+
+    def choose(self, q: np.ndarray, fov: np.ndarray, position: np.ndarray) -> np.ndarray:
+        """(B,) int64 actions from Q-values (B, 5), observations (B, 6, l, l) and cells (B, 2); greedy ties go
+        to the lowest index (stay). Remembers `position` as each row's previous cell for the next call."""
+        rule = self.rule
+        q = np.asarray(q, dtype=np.float64)
+        batch = q.shape[0]
+        f = np.asarray(fov).reshape(batch, *np.shape(fov)[-3:])
+        pos = np.asarray(position).reshape(batch, 2)
+        if rule.backtrack_penalty > 0 and self.previous is not None and self.previous.shape == pos.shape:
+            q = q - rule.backtrack_penalty * backtrack_moves(pos, self.previous)
+        self.previous = pos.copy()
+        if rule.goal_stay_bonus > 0:
+            q = q.copy()
+            q[:, 0] += rule.goal_stay_bonus * on_goal(f)
+        rows = settled(f) if rule.action_temperature > 0 and rule.settled_greedy else None
+        excluded = obstacle_moves(f) if rule.mask_obstacle_moves else None
+        return select_actions(q, rule.action_temperature, self.rng, greedy_rows=rows, excluded=excluded)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mapf_policy.action_selection import ActionRule, backtrack_moves, obstacle_moves, on_goal, select_actions, settled
+from mapf_policy.action_selection import ActionChooser, ActionRule
 from mapf_policy.config import NetworkConfig
 from mapf_policy.inference import InferenceNet
 from mapf_policy.model_io import load_model
@@ -43,12 +43,8 @@ class Policy:
         self.net = self.net.to(self.device).eval()
         # On CPU, the same function computed faster (inference.py); elsewhere the network itself.
         self.forward = InferenceNet(self.net) if self.device.type == "cpu" else self.net
-        if rule is None:
-            rule = ActionRule()
-        if not isinstance(rule, ActionRule):
-            raise ValueError(f"rule must be an ActionRule, got {type(rule).__name__}")
-        self.rule = rule
-        self.reset(seed)
+        self.chooser = ActionChooser(rule, seed)  # the rule, its generator and each row's previous cell
+        self.rule = self.chooser.rule
 
     @property
     def action_temperature(self) -> float:
@@ -57,10 +53,7 @@ class Policy:
     def reset(self, seed: int | None) -> None:
         """Start an episode: restart the sampling generator (an int seed makes runs repeatable; None draws
         one) and forget every row's previous cell."""
-        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
-            raise ValueError(f"seed must be an integer >= 0 or None, got {seed!r}")
-        self.rng = np.random.default_rng(seed)
-        self._previous = None  # (B, 2) cells of the last act() call
+        self.chooser.reset(seed)
 
     @property
     def network_config(self) -> NetworkConfig:
@@ -85,20 +78,10 @@ class Policy:
     def act(self, fov, last_action, position) -> np.ndarray:
         """(B,) int64 actions by the rule; greedy ties go to the lowest index (stay). Remembers `position`
         as each row's previous cell for the next call."""
-        q = self.q_values(fov, last_action, position).cpu().numpy().astype(np.float64)
-        rule, batch = self.rule, q.shape[0]
+        q = self.q_values(fov, last_action, position).cpu().numpy()
         f = fov.cpu().numpy() if isinstance(fov, torch.Tensor) else np.asarray(fov)
-        f = f.reshape(batch, *f.shape[-3:])
         pos = position.cpu().numpy() if isinstance(position, torch.Tensor) else np.asarray(position)
-        pos = pos.reshape(batch, 2)
-        if rule.backtrack_penalty > 0 and self._previous is not None and self._previous.shape == pos.shape:
-            q = q - rule.backtrack_penalty * backtrack_moves(pos, self._previous)
-        self._previous = pos.copy()
-        if rule.goal_stay_bonus > 0:
-            q[:, 0] += rule.goal_stay_bonus * on_goal(f)
-        rows = settled(f) if rule.action_temperature > 0 and rule.settled_greedy else None
-        excluded = obstacle_moves(f) if rule.mask_obstacle_moves else None
-        return select_actions(q, rule.action_temperature, self.rng, greedy_rows=rows, excluded=excluded)
+        return self.chooser.choose(q, f, pos)
 
     def act_obs(self, obs: dict) -> np.ndarray:
         """Actions for an observation dict of MapfEnv (keys fov, last_action, position)."""
