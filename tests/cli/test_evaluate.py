@@ -95,7 +95,9 @@ def test_plan_failed_is_a_failed_case():
     inst = generate_instance(0, size=8, n_agents=2)
     (r,) = evaluate_file(_Refuses(), [inst], max_steps=50)
     assert not r.success and r.steps == 50 and r.reason == "timeout"
-    assert r.sum_of_costs == 100 and r.positions.shape == (1, 2, 2)
+    # Without a plan the robots stand still: the real cells of all 50 counted steps are the starts.
+    assert r.sum_of_costs == 100 and r.positions.shape == (51, 2, 2)
+    assert (r.positions == np.asarray(inst.starts)[None]).all() and r.failed_moves == 0
 
 
 class _StaysPut:

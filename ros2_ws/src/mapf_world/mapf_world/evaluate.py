@@ -35,7 +35,7 @@ class CaseResult:
     failed_moves: int
     reason: str | None  # None on success; "max_steps", or PlanFailed.reason ("unsolvable", "timeout")
     seconds: float
-    positions: np.ndarray = field(repr=False)  # (T+1, N, 2) as run (T = steps actually taken)
+    positions: np.ndarray = field(repr=False)  # (steps+1, N, 2): the agents' cells at every counted step
 
 
 def sum_of_costs(positions: np.ndarray, goals: np.ndarray, steps: int) -> int:
@@ -53,6 +53,10 @@ def sum_of_costs(positions: np.ndarray, goals: np.ndarray, steps: int) -> int:
 
 
 def run_case(solver: Solver, inst: Instance, max_steps: int, index: int = 0) -> CaseResult:
+    """One case step by step. Its trajectory holds the agents' cells at every step it counts:
+    steps+1 frames, steps = the success step, or max_steps for a failed case. When the solver gives
+    up (PlanFailed: a planner that timed out or found no plan), its robots have no plan and stand
+    still, so the rest of the episode is played with every agent staying, up to max_steps."""
     t0 = time.perf_counter()
     env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps)
     obs, info = env.reset()
@@ -60,9 +64,10 @@ def run_case(solver: Solver, inst: Instance, max_steps: int, index: int = 0) -> 
     failed_moves = 0
     reason = None
     success = bool(info["success"])
+    done = success  # a case solved at the start asks the solver nothing
     try:
-        solver.reset(env)
-        done = success
+        if not done:
+            solver.reset(env)
         while not done:
             obs, _, terminated, truncated, info = env.step(solver.act(obs))
             trajectory.append(env.positions)
@@ -72,11 +77,19 @@ def run_case(solver: Solver, inst: Instance, max_steps: int, index: int = 0) -> 
         if not success:
             reason = "max_steps"
     except PlanFailed as exc:
-        success, reason = False, exc.reason
+        reason = exc.reason
+        stay = np.zeros(len(inst.starts), dtype=np.int64)
+        while not done:
+            obs, _, terminated, truncated, info = env.step(stay)
+            trajectory.append(env.positions)
+            done = terminated or truncated
+        success = False  # the solver failed, even if standing still ended on the goals (it cannot)
     seconds = time.perf_counter() - t0
     positions = np.stack(trajectory)
     validate_solution(inst.grid, inst.starts, inst.goals, positions, success=success)
     steps = env.step_count if success else max_steps
+    if positions.shape[0] != steps + 1:
+        raise RuntimeError(f"case {index}: {positions.shape[0]} frames for {steps} counted steps")
     soc = sum_of_costs(positions, inst.goals, steps)
     return CaseResult(index, steps, success, soc, failed_moves, reason, seconds, positions)
 
@@ -108,8 +121,10 @@ def summarize(results: list[CaseResult], solver_name: str, n_agents: int, wall_t
     }
 
 
-def trajectories_arrays(results: list[CaseResult]) -> dict:
-    """positions (K, T+1, N, 2) int16 padded after the end with the last cells, steps (K,), success (K,)."""
+def trajectories_arrays(results: list[CaseResult], max_steps: int) -> dict:
+    """The trajectory file (docs/ARCHITECTURE.md, "Trajectory files"): positions (K, T+1, N, 2) int16,
+    case k's real cells in frames 0..steps[k] and its last cells repeated after them up to the
+    longest case; steps (K,); success (K,); max_steps (the episode limit, a scalar)."""
     t_max = max(r.positions.shape[0] for r in results)
     padded = []
     for r in results:
@@ -119,6 +134,7 @@ def trajectories_arrays(results: list[CaseResult]) -> dict:
         "positions": np.stack(padded).astype(np.int16),
         "steps": np.array([r.steps for r in results], dtype=np.int32),
         "success": np.array([r.success for r in results], dtype=bool),
+        "max_steps": np.int32(max_steps),
     }
 
 
@@ -220,7 +236,7 @@ def main(argv=None) -> int:
         report["files"].append({"file": str(path), **summary, "results": cases})
         if args.trajectories:
             out = _trajectory_path(args.trajectories, path, len(files) > 1)
-            np.savez_compressed(out, **trajectories_arrays(results))
+            np.savez_compressed(out, **trajectories_arrays(results, args.max_steps))
     if args.json:
         args.json.write_text(json.dumps(report, indent=2) + "\n")
     return 0
