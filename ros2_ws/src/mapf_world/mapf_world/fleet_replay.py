@@ -1,6 +1,6 @@
 """Read a fleet MCAP log back: per-step timeline in the terminal, PNG and GIF of the run.
 
-Usage: scripts/replay FILE.mcap [--out DIR] [--no-gif]
+Usage: scripts/replay FILE.mcap [--out DIR] [--no-gif] [--recover]
 
 The map comes from /map (OccupancyGrid), the cells of every step from /fleet/status (falling back
 to the /robot_<i>/cell_move moves), the continuous motion from /robot_<i>/odom.
@@ -70,79 +70,82 @@ class RunLog:
         return np.stack([by_step[k] for k in range(last + 1)])
 
 
-def _decoded(f, notes: List[str]):
-    """(schema, channel, message, decoded) in log time order; a file that was not finalised (the
-    recorder was killed) is read record by record up to the first broken one, with a note."""
+def _decoded(path: Path, notes: List[str]) -> list:
+    """[(schema, channel, message, decoded)] in log time order. A file that was not finalised (the
+    recorder was killed, the file was cut) or is damaged is read up to its last complete chunk, with
+    a warning in notes; ValueError naming the file when nothing can be read."""
     from mcap.reader import make_reader
-    from mcap.records import Channel, Message, Schema
-    from mcap.stream_reader import StreamReader
     from mcap_ros2.decoder import DecoderFactory
 
+    from mapf_world.mcap_recover import check_magic, scan
+
+    check_magic(path)
     factory = DecoderFactory()
     try:
-        reader = make_reader(f, decoder_factories=[factory])
-        if reader.get_summary() is not None:
-            yield from reader.iter_decoded_messages(log_time_order=True)
-            return
-    except Exception as exc:  # the mcap reader raises many types for truncated files
-        notes.append(f"no summary ({type(exc).__name__}): reading record by record")
-    f.seek(0)
-    schemas, channels, count = {}, {}, 0
-    try:
-        for record in StreamReader(f).records:
-            if isinstance(record, Schema):
-                schemas[record.id] = record
-            elif isinstance(record, Channel):
-                channels[record.id] = record
-            elif isinstance(record, Message):
-                channel = channels[record.channel_id]
-                schema = schemas[channel.schema_id]
-                yield schema, channel, record, factory.decoder_for(channel.message_encoding, schema)(record.data)
-                count += 1
-    except Exception as exc:
-        notes.append(f"file ends in a broken record after {count} messages ({type(exc).__name__}): "
-                     f"it was not finalised")
+        with open(path, "rb") as f:
+            reader = make_reader(f, decoder_factories=[factory])
+            if reader.get_summary() is not None:
+                return list(reader.iter_decoded_messages(log_time_order=True))
+        why = "it has no summary"
+    except Exception as exc:  # the mcap reader raises many types for cut or damaged files
+        why = f"reading it whole failed ({type(exc).__name__}: {exc})"
+    found = scan(path)
+    notes.append(f"warning: {path} was not finalised or is damaged: {why}; "
+                 f"{found.problem or 'every record before the end is intact'}. Replaying the "
+                 f"{len(found.messages)} messages up to its last complete chunk "
+                 f"(scripts/replay --recover writes them to a finalised copy)")
+    out = []
+    for m in sorted(found.messages, key=lambda m: m.log_time):
+        channel = found.channels[m.channel_id]
+        schema = found.schemas.get(channel.schema_id)
+        if schema is None:
+            raise ValueError(f"{path}: channel {channel.topic} names schema {channel.schema_id}, which is not in the file")
+        try:
+            decoded = factory.decoder_for(channel.message_encoding, schema)(m.data)
+        except Exception as exc:
+            raise ValueError(f"{path}: a message on {channel.topic} does not decode "
+                             f"({type(exc).__name__}: {exc})") from exc
+        out.append((schema, channel, m, decoded))
+    return out
 
 
 def load_run(path) -> RunLog:
     path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{path} does not exist")
     run = RunLog(path)
-    with open(path, "rb") as f:
+    for schema, channel, message, msg in _decoded(path, run.notes):
+        topic = channel.topic
+        run.counts[topic] += 1
+        m = ROBOT_TOPIC.match(topic)
         try:
-            for schema, channel, message, msg in _decoded(f, run.notes):
-                topic = channel.topic
-                run.counts[topic] += 1
-                m = ROBOT_TOPIC.match(topic)
-                if topic.endswith("/map") and schema.name == "nav_msgs/msg/OccupancyGrid":
-                    h, w = msg.info.height, msg.info.width
-                    run.grid = (np.flipud(np.asarray(msg.data, dtype=np.int16).reshape(h, w)) >= 50).astype(np.uint8)
-                    run.cell_size = float(msg.info.resolution)
-                elif topic.endswith("fleet/status"):
-                    run.statuses.append(msg)
-                    run.instance = msg.instance
-                    run.cell_size = float(msg.cell_size)  # float64 here; the map's resolution is float32
-                    run.goals = np.asarray(msg.goals, dtype=np.int64).reshape(-1, 2)
-                elif topic == "/rosout" and msg.level >= 30:
-                    run.logs.append(f"[{msg.name}] {msg.msg}")
-                elif m:
-                    i, kind = int(m.group(1)), m.group(2)
-                    if kind == "odom":
-                        p, t = msg.pose.pose, msg.twist.twist
-                        stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-                        yaw = 2.0 * np.arctan2(p.orientation.z, p.orientation.w)
-                        run.odom[i].append((stamp, p.position.x, p.position.y, yaw, t.linear.x, t.angular.z))
-                    elif kind == "cmd_vel":
-                        run.cmd_vel[i].append((message.log_time * 1e-9, msg.linear.x, msg.angular.z))
-                    elif kind == "cell_move":
-                        run.moves[int(msg.step)][i] = msg
-                    elif kind == "action":
-                        run.actions[i].append(msg)
-                    else:
-                        run.observations[i].append(msg)
-        except Exception as exc:  # the mcap reader raises many types for foreign files
-            raise ValueError(f"{path}: not a readable fleet MCAP log ({type(exc).__name__}: {exc})") from exc
+            if topic.endswith("/map") and schema.name == "nav_msgs/msg/OccupancyGrid":
+                h, w = msg.info.height, msg.info.width
+                run.grid = (np.flipud(np.asarray(msg.data, dtype=np.int16).reshape(h, w)) >= 50).astype(np.uint8)
+                run.cell_size = float(msg.info.resolution)
+            elif topic.endswith("fleet/status"):
+                run.statuses.append(msg)
+                run.instance = msg.instance
+                run.cell_size = float(msg.cell_size)  # float64 here; the map's resolution is float32
+                run.goals = np.asarray(msg.goals, dtype=np.int64).reshape(-1, 2)
+            elif topic == "/rosout" and msg.level >= 30:
+                run.logs.append(f"[{msg.name}] {msg.msg}")
+            elif m:
+                i, kind = int(m.group(1)), m.group(2)
+                if kind == "odom":
+                    p, t = msg.pose.pose, msg.twist.twist
+                    stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+                    yaw = 2.0 * np.arctan2(p.orientation.z, p.orientation.w)
+                    run.odom[i].append((stamp, p.position.x, p.position.y, yaw, t.linear.x, t.angular.z))
+                elif kind == "cmd_vel":
+                    run.cmd_vel[i].append((message.log_time * 1e-9, msg.linear.x, msg.angular.z))
+                elif kind == "cell_move":
+                    run.moves[int(msg.step)][i] = msg
+                elif kind == "action":
+                    run.actions[i].append(msg)
+                else:
+                    run.observations[i].append(msg)
+        except (AttributeError, ValueError, TypeError) as exc:  # a topic of the fleet's name with another type
+            raise ValueError(f"{path}: {topic} [{schema.name}] is not what a fleet log holds there "
+                             f"({type(exc).__name__}: {exc})") from exc
     if run.grid is None:
         raise ValueError(f"{path}: no /map message (was the world node running while recording?)")
     return run
@@ -200,14 +203,28 @@ def main(argv=None) -> int:
     ap.add_argument("mcap", type=Path, help="fleet MCAP log (from scripts/demo or the recorder node)")
     ap.add_argument("--out", type=Path, default=None, help="where to write PNG/GIF (default: next to the log)")
     ap.add_argument("--no-gif", action="store_true", help="only the PNG")
+    ap.add_argument("--recover", action="store_true",
+                    help="write the readable part of a log that was not finalised (recorder killed) or is "
+                         "damaged to <out>/<name>.recovered.mcap, a finalised copy, and replay that")
     args = ap.parse_args(argv)
     try:
-        run = load_run(args.mcap)
+        path = args.mcap
+        if args.recover:
+            from mapf_world.mcap_recover import recover
+            copy = (args.out or args.mcap.parent) / f"{args.mcap.stem}.recovered.mcap"
+            found = recover(args.mcap, copy)
+            state = "finalised, nothing to recover" if found.finalised else (found.problem or "no summary")
+            print(f"recovered {len(found.messages)} messages on {len(found.channels)} topics from {args.mcap} "
+                  f"({state}) into {copy}", file=sys.stderr)
+            path = copy
+        run = load_run(path)
+        for note in run.notes:
+            print(f"replay: {note}", file=sys.stderr)
         for line in timeline(run):
             print(line)
         for p in render(run, args.out or args.mcap.parent, gif=not args.no_gif):
             print(f"wrote {p}")
-    except ValueError as exc:
+    except (ValueError, OSError) as exc:
         print(f"replay: error: {exc}", file=sys.stderr)
         return 2
     return 0

@@ -58,6 +58,16 @@ class QosProfile:
             if not 0 <= getattr(self, name) <= INFINITE_NS:
                 raise ValueError(f"QoS {name} must be in 0..{INFINITE_NS}, got {getattr(self, name)}")
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "QosProfile":
+        """Inverse of as_dict (a profile read back from a log); KeyError/TypeError on a missing field."""
+        def ns(t):
+            return int(t["sec"]) * 1_000_000_000 + int(t["nsec"])
+        return cls(history=str(d["history"]), depth=int(d["depth"]), reliability=str(d["reliability"]),
+                   durability=str(d["durability"]), deadline_ns=ns(d["deadline"]), lifespan_ns=ns(d["lifespan"]),
+                   liveliness=str(d["liveliness"]), liveliness_lease_duration_ns=ns(d["liveliness_lease_duration"]),
+                   avoid_ros_namespace_conventions=bool(d["avoid_ros_namespace_conventions"]))
+
     def as_dict(self) -> dict:
         """The profile as rosbag2 serialises it (key order matters for byte-exact output)."""
         return {
