@@ -40,6 +40,20 @@ def env_for(domain: int) -> dict:
     return env
 
 
+def robot_model(model: Path, out: Path) -> Path:
+    """The torch-free export the policy nodes run: the shipped one next to a .pt when it belongs to it, else one
+    written into `out` (an untrained test model)."""
+    from mapf_policy.export import check_belongs, export_model
+    if model.suffix == ".npz":
+        return model
+    shipped = model.with_suffix(".npz")
+    if shipped.is_file():
+        check_belongs(model, shipped)  # a stale shipped export fails here, naming the fix
+        return shipped
+    target = Path(out) / f"{model.stem}.npz"
+    return target if target.is_file() else export_model(model, target)
+
+
 class Fleet:
     """World + recorder + per robot a policy node and a drive executor, each a process."""
 
@@ -56,12 +70,12 @@ class Fleet:
         self.group = ProcessGroup(self.out / "logs", env_for(domain))
         self.world_params = dict(instance_source="map", map_file=str(SMALL_MAP), scen_file=str(SMALL_SCEN),
                                  n_robots=n_robots, max_steps=12, action_timeout_s=1.0, ready_grace_s=1.0,
-                                 summary_path=str(self.summary), linger_s=0.5) | (world or {})
+                                 summary_path=str(self.summary), linger_s=0.5, wait_for_recorder="recorder") | (world or {})
         self.drive_params = dict(real_time_factor=real_time_factor, rate_hz=rate_hz)
 
     def policy_command(self, i: int):
         return self.node_command("mapf_policy", "policy_node", namespace=f"/robot_{i}",
-                                 params=dict(model_path=str(self.model)))
+                                 params=dict(model_path=str(robot_model(self.model, self.out))))
 
     def start(self) -> "Fleet":
         g = self.group

@@ -8,13 +8,14 @@ import subprocess
 
 import pytest
 
-from fleet_helpers import SMALL_MAP, SMALL_SCEN, env_for
+from fleet_helpers import REPO_ROOT, SMALL_MAP, SMALL_SCEN, env_for
 
 pytestmark = [pytest.mark.ros]
 
 W, P, D, R = ("mapf_world", "world_node"), ("mapf_policy", "policy_node"), \
     ("mapf_policy", "drive_executor"), ("mapf_world", "recorder")
 SCEN = dict(instance_source="map", map_file=str(SMALL_MAP), scen_file=str(SMALL_SCEN))
+SHIPPED_PT, SHIPPED_NPZ = REPO_ROOT / "models" / "hscl.pt", REPO_ROOT / "models" / "hscl.npz"
 
 CASES = {
     "world_unknown_map_file": (W, None, SCEN | dict(map_file="/no/such/file.map"), "map_file '/no/such/file.map' does not exist"),
@@ -25,8 +26,11 @@ CASES = {
     "world_even_fov": (W, None, dict(fov_size=4), "fov_size must be an odd integer"),
     "world_bad_pose_source": (W, None, dict(pose_source="gps"), "pose_source must be 'odom' or 'pose_topic'"),
     "world_wrong_parameter_type": (W, None, dict(cell_size="wide"), "cell_size"),
-    "policy_missing_model": (P, "/robot_0", dict(model_path="/no/such/model.pt"), "model file '/no/such/model.pt' not found"),
-    "policy_incompatible_model": (P, "/robot_0", "GARBAGE_MODEL", "not a readable model file"),
+    "policy_missing_model": (P, "/robot_0", dict(model_path="/no/such/model.npz"), "model file '/no/such/model.npz' not found"),
+    "policy_incompatible_model": (P, "/robot_0", "GARBAGE_MODEL", "not a readable exported model"),
+    "policy_torch_model": (P, "/robot_0", dict(model_path=str(SHIPPED_PT)), "is a torch model file; a robot runs its export"),
+    "policy_export_of_another_model": (P, "/robot_0", dict(model_path=str(SHIPPED_NPZ), source_sha256="ab" * 32),
+                                       "not from the model file with SHA-256 abababababab"),
     "policy_robot_id_disagrees": (P, "/robot_1", dict(robot_id=2), "robot_id 2 disagrees with namespace '/robot_1'"),
     "policy_no_robot_namespace": (P, None, dict(), "does not end in 'robot_<i>'"),
     "policy_negative_robot_id": (P, None, dict(robot_id=-4), "robot_id must be an integer >= 0"),
@@ -43,7 +47,7 @@ CASES = {
 @pytest.fixture(scope="module")
 def results(module_domain_id, tmp_path_factory):
     from mapf_world.fleet_launch import node_command
-    garbage = tmp_path_factory.mktemp("models") / "garbage.pt"
+    garbage = tmp_path_factory.mktemp("models") / "garbage.npz"
     garbage.write_text("this is not a model\n")
     procs = {}
     for name, ((pkg, exe), ns, params, _) in CASES.items():

@@ -24,6 +24,7 @@ setup(
         "console_scripts": [
             "policy_node = mapf_policy.policy_node:main",
             "drive_executor = mapf_policy.drive_executor:main",
+            "robot_container = mapf_policy.robot_container:main",
         ],
     },
 )

@@ -40,8 +40,10 @@ def positive(node: Node, name: str) -> float:
 
 
 class DriveExecutor(Node):
-    def __init__(self):
-        super().__init__("drive_executor")
+    """`node_options` (namespace, parameter_overrides, ...) go to rclpy's Node (robot_container.py)."""
+
+    def __init__(self, **node_options):
+        super().__init__("drive_executor", **node_options)
         self.declare_parameter("robot_id", -1)
         self.declare_parameter("cell_size", 0.3)
         self.declare_parameter("max_linear_speed", 0.2)

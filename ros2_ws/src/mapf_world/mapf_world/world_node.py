@@ -112,7 +112,7 @@ class WorldNode(Node):
             settle_tolerance_m=0.03, settle_speed_eps=1e-3, settle_hold_s=0.3,
             lockstep_drive=True, max_angular_speed=1.57,
             robot_namespace_prefix="robot_", frame_id="map",
-            summary_path="", marker_period_s=0.2, linger_s=1.0, ready_grace_s=1.0,
+            summary_path="", marker_period_s=0.2, linger_s=1.0, ready_grace_s=1.0, wait_for_recorder="",
         )
         p = {k: self.declare_parameter(k, v).value for k, v in defaults.items()}
         if p["instance_source"] not in INSTANCE_SOURCES:
@@ -206,8 +206,9 @@ class WorldNode(Node):
     def _wait_for_robots(self, now: float) -> None:
         not_placed = [i for i in range(self.n) if not self._settled(i, self.core.starts[i], now)]
         no_policy = [i for i in range(self.n) if self.count_publishers(self.action_topics[i]) == 0]
+        unrecorded = self._unrecorded_topics() if not not_placed and not no_policy else []
         waited = now - self.t_start
-        if not not_placed and not no_policy:
+        if not not_placed and not no_policy and not unrecorded:
             # A short grace lets passive subscribers (recorder, viewers) discover the new publishers.
             if self._ready_since is None:
                 self._ready_since = now
@@ -220,14 +221,31 @@ class WorldNode(Node):
                 where = "; ".join(self._where(i, self.core.starts[i]) for i in not_placed)
                 self._finish(f"startup timeout: robots {not_placed} not on their start cells after "
                              f"{waited:.1f} s ({where})", aborted=True)
-            else:
+            elif no_policy:
                 self.get_logger().warning(f"startup timeout: no policy node publishes the action of robots {no_policy}; "
                                           f"starting anyway (they stay until one answers)")
                 self._begin(now)
+            else:
+                self.get_logger().warning(f"startup timeout: {self.params['wait_for_recorder']!r} does not subscribe "
+                                          f"to {unrecorded[:4]} ({len(unrecorded)} topics); starting anyway "
+                                          f"(its log will lack the first messages there)")
+                self._begin(now)
         elif now - self._last_wait_log >= 5.0:
             self._last_wait_log = now
-            self.get_logger().info(f"waiting for robots: not on start cell {not_placed}, no policy node {no_policy}")
+            self.get_logger().info(f"waiting for robots: not on start cell {not_placed}, no policy node {no_policy}"
+                                   + (f", {len(unrecorded)} topics not yet recorded" if unrecorded else ""))
             self.publish_status()
+
+    def _unrecorded_topics(self) -> list:
+        """Topics of the grid steps (every robot's observation, action and cell_move, and fleet/status) that the
+        node named by wait_for_recorder does not subscribe to yet ([] when the parameter is empty). Waiting for
+        them keeps a fast start-up from running steps before the recorder sees them."""
+        name = self.params["wait_for_recorder"]
+        if not name:
+            return []
+        topics = ["/fleet/status"] + [f"/{t}" for t in self.action_topics]
+        topics += [f"/{p.topic_name.lstrip('/')}" for p in self.obs_pubs + self.move_pubs]
+        return [t for t in topics if not any(info.node_name == name for info in self.get_subscriptions_info_by_topic(t))]
 
     def _begin(self, now: float) -> None:
         self.t_running = now
