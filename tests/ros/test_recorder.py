@@ -8,6 +8,7 @@ message: exactly the published number, in order, with their stamps.
 """
 from __future__ import annotations
 
+import re
 import signal
 import time
 
@@ -126,6 +127,10 @@ def test_nothing_lost_on_any_fleet_topic_at_fleet_rate_and_in_a_burst(tmp_path, 
         group.stop_all()
     assert code == 0, group.log_text("recorder")[-2000:]
     total = FLEET_COUNT + BURST_COUNT
+    # The recorder's own account, from the writers' sequence numbers, agrees.
+    # (/rosout counts too when the recorder was its only publisher at discovery.)
+    account = re.search(r"sequence numbers: (\d+) published, (\d+) received, (\d+) lost", group.log_text("recorder"))
+    assert account and int(account[1]) == int(account[2]) >= total * len(topics) and account[3] == "0"
     rate = BURST_COUNT * len(topics) / burst_s
     print(f"burst: {BURST_COUNT * len(topics)} messages on {len(topics)} topics in {burst_s:.2f} s ({rate:.0f}/s)")
     logged = read_log(mcap, topics)

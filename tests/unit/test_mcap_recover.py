@@ -133,3 +133,20 @@ def test_recover_refuses_to_overwrite_its_input(tmp_path):
     with pytest.raises(ValueError, match="must not overwrite"):
         recover(path, path)
     assert np.all([m.log_time for m in scan(path).messages] == sorted(m.log_time for m in scan(path).messages))
+
+
+def test_sequence_tracker_counts_gaps_and_publisher_restarts():
+    from mapf_world.recorder_core import SequenceTracker
+    t = SequenceTracker()
+    t.track("/a")
+    t.track("/b")
+    for seq in (1, 2, 3, 6, 7):          # 4 and 5 never arrived
+        t.received("/a", seq)
+    for seq in (5, 6, 1, 2):             # joined late (from 5), then a restarted publisher numbers from 1
+        t.received("/b", seq)
+    t.received("/rosout", 3)             # not tracked: several publishers
+    t.received("/a", None)               # a middleware without numbers: ignored
+    assert (t.topics["/a"].published, t.topics["/a"].received, t.topics["/a"].lost) == (7, 5, 2)
+    assert (t.topics["/b"].published, t.topics["/b"].lost, t.topics["/b"].writers) == (4, 0, 2)
+    assert t.published == 11 and t.lost == 2
+    assert t.report() == "11 published, 9 received, 2 lost on 2 single-publisher topics (most on /a 2)"

@@ -18,6 +18,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from mapf_world.mcap_log import McapRos2Writer
+from mapf_world.recorder_core import SequenceTracker
 from mapf_world.rosbag2_format import QosProfile
 from mapf_world.node_main import run_node
 
@@ -82,6 +83,7 @@ class Recorder(Node):
         self.writer = McapRos2Writer(Path(output), compression=str(self.get_parameter("compression").value))
         self._subs = {}
         self._refused = set()
+        self.sequences = SequenceTracker()
         self.create_timer(discovery, self._discover)
         self.create_timer(flush, self.writer.flush)
         self.get_logger().info(f"recording to {self.writer.path} "
@@ -110,9 +112,13 @@ class Recorder(Node):
                 self._refused.add(topic)
                 continue
 
-            def on_message(data, info, cid=cid):
+            if len(publishers) == 1:
+                self.sequences.track(topic)
+
+            def on_message(data, info, cid=cid, topic=topic):
                 self.writer.write(cid, data, log_time_ns=time.time_ns(),
                                   publish_time_ns=info.get("source_timestamp") or None)
+                self.sequences.received(topic, info.get("publication_sequence_number"))
 
             self._subs[topic] = self.create_subscription(cls, topic, on_message, recorder_qos(publishers), raw=True)
             self.get_logger().info(f"recording {topic} [{types[0]}]")
@@ -121,7 +127,7 @@ class Recorder(Node):
         self.writer.close()
         # print, not the ROS logger: after SIGINT the context (and /rosout) is already shut down.
         print(f"[recorder] wrote {self.writer.message_count} messages on {len(self._subs)} topics "
-              f"to {self.writer.path}", file=sys.stderr, flush=True)
+              f"to {self.writer.path}; sequence numbers: {self.sequences.report()}", file=sys.stderr, flush=True)
 
 
 def main(args=None):
