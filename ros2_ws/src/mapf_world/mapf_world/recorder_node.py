@@ -2,8 +2,10 @@
 
 Topics are discovered on the live graph (like `ros2 bag record -a`, or only the names listed in the
 `topics` parameter) and subscribed as raw CDR once a publisher exists, with a QoS that matches the
-publishers (transient local for latched topics such as /map). The file is finalised on SIGINT or
-SIGTERM: the chunk in progress is flushed and the writer closed in `finally`, so it stays readable.
+publishers (transient local for latched topics such as /map) and keeps every sample (recorder_qos).
+The chunk in progress is written every `flush_period_s`, so a killed recorder's file is readable up
+to it (mcap_recover.py); on SIGINT or SIGTERM the writer is closed in `finally` and the file finalised.
+On close it prints its loss account from the writers' sequence numbers (recorder_core.py).
 """
 from __future__ import annotations
 
