@@ -23,16 +23,22 @@ def test_field_types_skip_primitives_and_constants_and_resolve_short_names():
         field_types("justonetoken\n", "pkg")
 
 
-def test_definition_lists_each_nested_type_once_after_separator_lines():
+def test_definition_is_built_as_rosbag2_builds_it():
+    # Each file's text as it is, then each nested type (sorted by name, depth-first, once) after a
+    # newline, 80 '=' and "MSG: pkg/Name".
+    sep = "\n" + "=" * 80 + "\nMSG: "
+    expected = (FAKE[("pkg", "Outer")]
+                + sep + "pkg/Inner\n" + FAKE[("pkg", "Inner")]
+                + sep + "other_pkg/Leaf\n" + FAKE[("other_pkg", "Leaf")]
+                + sep + "builtin_interfaces/Time\n" + FAKE[("builtin_interfaces", "Time")]
+                + sep + "std_msgs/Header\n" + FAKE[("std_msgs", "Header")])
     text = message_definition("pkg/msg/Outer", read=fake_read)
-    assert text.startswith(FAKE[("pkg", "Outer")].rstrip("\n"))
-    blocks = text.split(SEPARATOR + "\n")
-    names = [b.splitlines()[0] for b in blocks[1:]]
-    assert names == ["MSG: std_msgs/Header", "MSG: builtin_interfaces/Time", "MSG: pkg/Inner", "MSG: other_pkg/Leaf"]
+    assert text == expected
     assert text.count("MSG: builtin_interfaces/Time") == 1
     for line in text.splitlines():
         if set(line) == {"="}:
             assert len(line) == 80
+    assert message_definition("builtin_interfaces/msg/Time", read=fake_read) == FAKE[("builtin_interfaces", "Time")]
 
 
 def test_bad_type_names_are_refused():

@@ -2,8 +2,8 @@
 
 - profile "ros2";
 - one schema per message type, named "pkg/msg/Name", encoding "ros2msg", whose text is the complete
-  definition: the type's own .msg text, then every nested type once (depth-first, in order of first
-  use), each after a line of 80 '=' and a line "MSG: pkg/Name";
+  definition: the type's own .msg text, then every nested type once (depth-first, sorted by name at
+  each level), each after an empty line, a line of 80 '=' and a line "MSG: pkg/Name";
 - one channel per topic, message encoding "cdr" (payloads from rclpy.serialization), with the
   metadata keys "offered_qos_profiles" and "topic_type_hash" (rosbag2_format.py);
 - a metadata record "rosbag2" holding the bag metadata (version 9), once at the start and once
@@ -27,6 +27,7 @@ from mapf_world.rosbag2_format import (METADATA_KEY, METADATA_RECORD, QosProfile
 PRIMITIVES = frozenset("bool byte char float32 float64 int8 uint8 int16 uint16 int32 uint32 int64 uint64 "
                        "string wstring".split())
 SEPARATOR = "=" * 80
+MAX_NESTING = 50  # rosbag2 gives up at the same depth
 
 
 def split_type_name(type_name: str) -> Tuple[str, str]:
@@ -81,28 +82,28 @@ def field_types(text: str, package: str) -> List[str]:
 def message_definition(type_name: str, read: Optional[Callable[[str, str], str]] = None) -> str:
     """Complete ros2msg definition text of type_name, as rosbag2 stores it in MCAP schemas.
 
+    As rosbag2_storage_mcap builds it: the type's .msg text as in its file, then, for each nested
+    type in sorted order (depth-first, each type once), a newline, a line of 80 '=', a line
+    "MSG: pkg/Name" and that type's text built the same way.
     read(package, name) -> .msg text; defaults to the installed .msg files (ament index).
     """
     if read is None:
         def read(package: str, name: str) -> str:
             return msg_file(package, name).read_text()
-    package, name = split_type_name(type_name)
-    root = read(package, name)
-    parts = [root.rstrip("\n")]
-    seen = {f"{package}/{name}"}
+    seen = set()
 
-    def visit(text: str, pkg: str) -> None:
-        for dep in field_types(text, pkg):
+    def full_text(pkg: str, name: str, depth: int) -> str:
+        if depth > MAX_NESTING:
+            raise ValueError(f"message type {type_name} nests more than {MAX_NESTING} levels deep")
+        text = read(pkg, name)
+        for dep in sorted(set(field_types(text, pkg))):
             if dep in seen:
                 continue
             seen.add(dep)
-            dep_pkg, dep_name = split_type_name(dep)
-            dep_text = read(dep_pkg, dep_name)
-            parts.append(f"{SEPARATOR}\nMSG: {dep}\n{dep_text.rstrip(chr(10))}")
-            visit(dep_text, dep_pkg)
+            text += f"\n{SEPARATOR}\nMSG: {dep}\n" + full_text(*split_type_name(dep), depth + 1)
+        return text
 
-    visit(root, package)
-    return "\n".join(parts) + "\n"
+    return full_text(*split_type_name(type_name), 0)
 
 
 class McapRos2Writer:
