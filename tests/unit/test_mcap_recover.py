@@ -150,3 +150,22 @@ def test_sequence_tracker_counts_gaps_and_publisher_restarts():
     assert (t.topics["/b"].published, t.topics["/b"].lost, t.topics["/b"].writers) == (4, 0, 2)
     assert t.published == 11 and t.lost == 2
     assert t.report() == "11 published, 9 received, 2 lost on 2 single-publisher topics (most on /a 2)"
+
+
+def test_recover_carries_an_older_log_whose_qos_lists_four_fields(tmp_path):
+    from mcap.writer import Writer
+    from std_msgs.msg import String
+    from rclpy.serialization import serialize_message
+    path = tmp_path / "old.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="ros2", library="old")
+        sid = w.register_schema("std_msgs/msg/String", "ros2msg", b"string data\n")
+        cid = w.register_channel("/chatter", "cdr", sid, {"offered_qos_profiles": "- history: unknown\n  depth: 0\n"})
+        for k in range(3):
+            w.add_message(cid, log_time=10 + k, data=serialize_message(String(data=str(k))), publish_time=10 + k)
+        w.finish()
+    found = recover(path, tmp_path / "old.recovered.mcap")
+    assert len(found.messages) == 3 and "the copy lists none" in found.notes[0]
+    copy = scan(tmp_path / "old.recovered.mcap")
+    assert copy.finalised and [m.log_time for m in copy.messages] == [10, 11, 12]

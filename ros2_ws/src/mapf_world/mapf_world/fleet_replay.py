@@ -216,6 +216,8 @@ def main(argv=None) -> int:
             state = "finalised, nothing to recover" if found.finalised else (found.problem or "no summary")
             print(f"recovered {len(found.messages)} messages on {len(found.channels)} topics from {args.mcap} "
                   f"({state}) into {copy}", file=sys.stderr)
+            for note in found.notes:
+                print(f"replay: warning: {note}", file=sys.stderr)
             path = copy
         run = load_run(path)
         for note in run.notes:

@@ -25,6 +25,7 @@ class Scan:
     messages: List[object] = field(default_factory=list)
     finalised: bool = False          # the file ends with a summary and the closing magic
     problem: Optional[str] = None    # why reading stopped early (None: the whole file was read)
+    notes: List[str] = field(default_factory=list)  # what recover could not carry over
 
     def counts(self) -> Dict[str, int]:
         out: Dict[str, int] = {}
@@ -101,8 +102,11 @@ def recover(path, out_path) -> Scan:
             try:
                 listed = yaml.safe_load(channel.metadata.get("offered_qos_profiles", "")) or []
                 profiles = [QosProfile.from_dict(p) for p in listed]
-            except (yaml.YAMLError, TypeError, KeyError, ValueError) as exc:
-                raise ValueError(f"{path}: channel {channel.topic} has unreadable offered_qos_profiles: {exc}") from exc
+            except (yaml.YAMLError, TypeError, KeyError, ValueError, AttributeError) as exc:
+                # A log of an older recorder (four QoS fields only): the copy says nothing rather than guess.
+                profiles = []
+                result.notes.append(f"{channel.topic}: offered_qos_profiles not readable as rosbag2's "
+                                    f"({type(exc).__name__}: {exc}); the copy lists none")
             ids[cid] = writer.add_channel(channel.topic, schema.name, profiles,
                                           channel.metadata.get("topic_type_hash", ""))
         for m in result.messages:
