@@ -104,7 +104,10 @@ def main(argv=None) -> int:
         executor.add_node(node)
     print(f"[robot_container] robots {robots}: {len(nodes)} nodes ({', '.join(args.nodes)}) spinning", flush=True)
     try:
-        executor.spin()
+        # spin_once in a loop, not spin(): with EventsExecutor.spin() of this rclpy (Jazzy, PyPI wheels) the
+        # timers ran but no subscription callback ever did (a policy container never answered; seen here).
+        while rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
