@@ -68,6 +68,10 @@ class NetworkConfig:
     """Raw (row, col) positions are divided by this inside the network (the 40x40 training worlds)."""
     n_actions: int = 5
     """Number of actions (stay, up, down, left, right)."""
+    dueling: bool = False
+    """Dueling split of the output (second design, models/README.md): Q = V + A - mean(A), with one extra
+    FC 300 -> 1 for V (301 parameters). HSCL then acts on the advantage A and the DQN fits the level through V.
+    False: the paper's single FC 300 -> 5 (every model before the second design)."""
 
     def validate(self) -> None:
         if self.fov_size < 9 or self.fov_size % 2 == 0:

@@ -96,6 +96,8 @@ class QNetwork(nn.Module):
         self.position_fc = nn.Linear(2, cfg.position_features)
         self.hidden_fc = nn.Linear(c_in * side * side + cfg.action_features + cfg.position_features, cfg.hidden_features)
         self.q_fc = nn.Linear(cfg.hidden_features, cfg.n_actions)
+        # Dueling split (cfg.dueling): q_fc gives the advantages A, value_fc the state value V.
+        self.value_fc = nn.Linear(cfg.hidden_features, 1) if cfg.dueling else None
 
     def check_inputs(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor) -> None:
         """ValueError naming the input whose shape does not fit (B, 6, l, l), (B, 5), (B, 2)."""
@@ -124,7 +126,19 @@ class QNetwork(nn.Module):
         act = F.relu(self.action_fc(last_action))
         pos = F.relu(self.position_fc(position / self.cfg.position_scale))
         z = torch.cat([x.flatten(1), act, pos], dim=1)
-        return self.q_fc(F.relu(self.hidden_fc(z)))
+        hidden = F.relu(self.hidden_fc(z))
+        if self.value_fc is None:
+            return self.q_fc(hidden)
+        value, adv = self.value_fc(hidden), self.q_fc(hidden)
+        return value + adv - adv.mean(dim=1, keepdim=True)
+
+    def value_advantage(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor) -> tuple:
+        """(V (B,), A (B, 5)) of a dueling network, A zero-mean per row so that Q = V + A; for the losses."""
+        if self.value_fc is None:
+            raise ValueError("value_advantage needs a dueling network (NetworkConfig.dueling)")
+        q = self.forward(fov, last_action, position)
+        value = q.mean(dim=1)
+        return value, q - value[:, None]
 
 
 def count_parameters(net: nn.Module) -> int:

@@ -5,6 +5,11 @@ goal -0.075; a failed move -0.5 instead. When all agents stand on their goals at
 episode ends (terminated) and the reward of that step is set to 3 for every agent, as in DHC and
 the paper ("the reward value is set to 3"). An episode has at most `max_steps` steps; reaching it
 without success ends it with truncated=True.
+
+The observation's last action (`last_action`): "requested" (the action the agent asked for, also when the
+grid rules refused the move; every model before the second design) or "executed" (what the agent did:
+stay when its move was refused). The paper says "the action performed by the agent at the last moment".
+With "requested", an agent whose move was refused often sees exactly the observation it saw before.
 """
 from __future__ import annotations
 
@@ -21,18 +26,22 @@ REWARD_STAY_ON_GOAL = 0.0
 REWARD_STAY_OFF_GOAL = -0.075
 REWARD_FAILED_MOVE = -0.5
 REWARD_FINISH = 3.0
+LAST_ACTION_MODES = ("requested", "executed")
 
 
 class MapfEnv:
     """One instance (map, starts, goals). Arrays follow docs/ARCHITECTURE.md: cells are (row, col)."""
 
-    def __init__(self, grid, starts, goals, fov_size: int = 9, max_steps: int = 256):
+    def __init__(self, grid, starts, goals, fov_size: int = 9, max_steps: int = 256, last_action: str = "requested"):
         # Cells on the map, free, distinct, goals reachable (cheap component labels; the BFS waits for reset()).
         self._grid, self._starts, self._goals = check_instance(grid, starts, goals)
         if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
             raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
         self.fov_size = check_fov_size(fov_size)
         self.max_steps = int(max_steps)
+        if last_action not in LAST_ACTION_MODES:
+            raise ValueError(f"last_action must be one of {LAST_ACTION_MODES}, got {last_action!r}")
+        self.last_action_mode = last_action
         self._dist: np.ndarray | None = None
         self._builder: ObservationBuilder | None = None
         self._positions = self._starts.copy()
@@ -112,7 +121,7 @@ class MapfEnv:
         stayed_on_goal = (acts == STAY) & self.on_goal()
         new_pos, failed = resolve_moves(self._grid, self._positions, acts)
         self._positions = new_pos
-        self._last_actions = acts
+        self._last_actions = np.where(failed, STAY, acts) if self.last_action_mode == "executed" else acts
         self._step += 1
         rewards = np.full(self.n_agents, REWARD_MOVE, dtype=np.float32)
         rewards[acts == STAY] = REWARD_STAY_OFF_GOAL

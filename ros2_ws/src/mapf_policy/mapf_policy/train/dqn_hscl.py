@@ -1,0 +1,661 @@
+"""The second training design: DQN + HSCL that cooperate, from random weights, in one process.
+
+    scripts/dqn_hscl --run-name r1 --stages 1x10 4x20 --total-steps 20000
+
+Reads top to bottom like CleanRL's dqn.py: Args, the pieces it needs, then `train()`, whose loop is
+play an episode -> store its rows -> a few gradient steps -> log / evaluate / checkpoint.
+
+What differs from the first design (mapf_policy/train/learner.py), and why (models/README.md, "Second design"):
+- Dueling split Q = V + A - mean(A) (NetworkConfig.dueling). HSCL acts on the zero-mean advantage A, so the
+  cosine with a hot vector measures the ranking of actions and nothing else, while the DQN fits the level
+  of Q through V. In the first design both terms pulled on the same 5 numbers: HSCL wants them proportional
+  to onehot - tau, the DQN wants them at the (negative) returns.
+- n-step returns (default 2), Huber loss, gradient clip 40, batch 192, target sync 2,000 (DHC's values).
+- The loss weights are set by measured gradient share: every log step the gradient norms of the two weighted
+  terms are measured apart, and with `dqn_share` > 0 the HSCL weight is steered so that the DQN term gets that
+  share of the update (the first design's nominal 0.5/0.5 gave the DQN about 0.5 %).
+- A curriculum of stages "AGENTSxSIZE"; a stage is passed when the greedy policy solves `advance_pass_rate` of
+  the stage's validation cases (own seed stream; the ladder's held-out cases are another). The pass rate of
+  the epsilon-greedy training episodes was tried first and passed 1 agent on 10x10 at a greedy 0.65: random
+  actions break the loops that stop a greedy agent. Earlier stages keep a share of the episodes.
+- Some episodes are driven by the expert (ODrM*), so that the DQN term sees team successes (+3) early.
+- The last-action input can be the executed action (`--last-action executed`, MapfEnv).
+Everything runs in this process; actions come from InferenceNet (the fast CPU forward of inference.py).
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import json
+import os
+import signal
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+from tqdm import tqdm
+
+from mapf_policy.config import NetworkConfig, ABLATIONS
+from mapf_policy.inference import FastForward, InferenceNet
+from mapf_policy.losses import expert_agreement, hscl_loss
+from mapf_policy.model_io import load_model, save_model
+from mapf_policy.network import QNetwork
+from mapf_policy.train.demos import ACTOR_STREAM, VALID_STREAM, generated_cases, instance_rng
+from mapf_policy.train.expert import ExpertFailed, make_oracle
+from mapf_policy.train.log import CsvLog, read_csv, truncate_log
+from mapf_world.env import LAST_ACTION_MODES, MapfEnv
+from mapf_world.instances import generate_instance
+
+
+@dataclass(frozen=True)
+class Args:
+    """One run of the second design; saved as config.json in the run directory."""
+
+    run_name: str = "dqn_hscl"
+    """Run directory runs/<run_name>; the same command resumes it."""
+    seed: int = 0
+    """Seeds torch, numpy and the generated worlds (own streams for training and validation)."""
+    variant: str = "hscl"
+    """'hscl' (the paper's network) or a Table III ablation ('hscl_no_self_attention', ...)."""
+    dueling: bool = True
+    """Dueling split Q = V + A - mean(A), HSCL on A (False: the paper's single head, HSCL on Q)."""
+    last_action: str = "executed"
+    """Observation's last action: 'executed' (stay when the move was refused) or 'requested' (MapfEnv)."""
+    total_steps: int = 20_000
+    """Learner gradient steps of the whole run."""
+    session_minutes: float = 0.0
+    """Stop with a checkpoint after this many minutes of this session (0: no limit)."""
+    batch_size: int = 192
+    """Rows per gradient step."""
+    lr: float = 1e-4
+    """Adam learning rate."""
+    gamma: float = 0.99
+    """Discount factor."""
+    n_step: int = 2
+    """Rewards summed before bootstrapping from the target network (DHC: 2)."""
+    huber_delta: float = 1.0
+    """Huber loss threshold on the TD error (smooth L1)."""
+    grad_clip: float = 40.0
+    """Global gradient-norm bound."""
+    target_update_every: int = 2_000
+    """Learner steps between copies of the online network into the target network."""
+    dqn_weight: float = 1.0
+    """Weight of the DQN term."""
+    hscl_weight: float = 0.1
+    """Initial weight of the HSCL term (steered when dqn_share > 0)."""
+    dqn_share: float = 0.4
+    """Target share of the DQN term in the update's gradient norm, |g_dqn| / (|g_dqn| + |g_hscl|); 0: fixed weights."""
+    tau_h: float = 0.1
+    """Hot-vector offset of Table I."""
+    temperature: float = 0.1
+    """HSCL temperature T (eq. 13)."""
+    replay_capacity: int = 200_000
+    """Rows kept in the replay (oldest overwritten)."""
+    learning_starts: int = 2_000
+    """Rows in the replay before the first gradient step."""
+    replay_ratio: float = 4.0
+    """Rows drawn by the learner per row produced (sets the gradient steps after each episode)."""
+    eps_start: float = 0.3
+    """Exploration epsilon at step 0 (each agent independently)."""
+    eps_end: float = 0.05
+    """Epsilon after eps_decay_steps."""
+    eps_decay_steps: int = 10_000
+    """Learner steps of the linear epsilon decay."""
+    relabel_fraction: float = 1.0
+    """Share of policy-driven episodes whose visited states get ODrM* labels for HSCL."""
+    expert_drive_fraction: float = 0.1
+    """Share of episodes in which the agents execute the expert's actions (with epsilon noise)."""
+    expert: str = "odrmstar"
+    """'odrmstar' (the paper's) or 'shortest_path' (a stand-in for tests)."""
+    expert_epsilon: float = 10.0
+    """ODrM* inflation."""
+    expert_time_limit: float = 2.0
+    """Seconds per ODrM* planning call."""
+    relabel_time_budget: float = 5.0
+    """Seconds of expert planning per episode; later states stay unlabelled."""
+    stages: tuple = ("1x10", "2x10", "4x20", "8x20", "8x40", "16x40", "32x40", "64x40")
+    """Curriculum stages AGENTSxSIZE, in order."""
+    density: float = 0.3
+    """Obstacle density of the generated worlds."""
+    advance_pass_rate: float = 0.95
+    """Greedy success on the current stage's validation cases (at an evaluation) that moves to the next stage."""
+    review_fraction: float = 0.2
+    """Share of episodes drawn from earlier stages (uniformly)."""
+    max_episode_steps: int = 256
+    """Episode step limit (the benchmark's)."""
+    eval_every: int = 1_000
+    """Learner steps between greedy evaluations on the validation cases (0: never)."""
+    eval_cases: int = 40
+    """Validation cases per stage (stages up to the current one and the next); they also decide the curriculum."""
+    log_every: int = 100
+    """Learner steps between train.csv rows (and gradient-share measurements)."""
+    checkpoint_minutes: float = 5.0
+    """Minutes between checkpoints."""
+    publish_dir: str = ""
+    """Also copy last.pt, state.json, config, logs and plot here at each checkpoint (a committed folder, so a
+    fresh machine resumes from the weights); empty: don't."""
+    threads: int = 1
+    """torch threads."""
+    bf16: bool = False
+    """Autocast the learner's forward pass to bfloat16 (AMX-BF16 CPUs: about 1.3x per step at batch 192; the
+    actors and evaluations stay float32)."""
+
+    def validate(self) -> None:
+        def need(cond, msg):
+            if not cond:
+                raise ValueError(msg)
+        need(self.variant in ("hscl",) + tuple(ABLATIONS), f"variant must be hscl or one of {tuple(ABLATIONS)}, got {self.variant!r}")
+        need(self.last_action in LAST_ACTION_MODES, f"last_action must be one of {LAST_ACTION_MODES}, got {self.last_action!r}")
+        for name in ("total_steps", "batch_size", "n_step", "target_update_every", "replay_capacity",
+                     "max_episode_steps", "eval_cases", "log_every", "threads"):
+            need(int(getattr(self, name)) >= 1, f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("eps_start", "eps_end", "relabel_fraction", "expert_drive_fraction", "advance_pass_rate",
+                     "review_fraction", "dqn_share"):
+            need(0.0 <= getattr(self, name) <= 1.0, f"{name} must lie in [0, 1], got {getattr(self, name)}")
+        need(self.dqn_share < 1.0, "dqn_share must be < 1")
+        need(0.0 < self.gamma <= 1.0, f"gamma must lie in (0, 1], got {self.gamma}")
+        need(self.dqn_weight >= 0 and self.hscl_weight >= 0 and self.dqn_weight + self.hscl_weight > 0,
+             "dqn_weight and hscl_weight must be >= 0, not both 0")
+        need(0.0 < self.tau_h < 0.2, f"tau_h must lie in (0, 0.2), got {self.tau_h}")
+        for name in ("lr", "grad_clip", "temperature", "replay_ratio", "huber_delta", "expert_time_limit"):
+            need(getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")
+        need(self.expert in ("odrmstar", "shortest_path"), f"expert must be odrmstar or shortest_path, got {self.expert!r}")
+        need(len(self.stages) >= 1, "stages must name at least one stage")
+        for s in self.stages:
+            parse_stage(s)
+
+    def network_config(self) -> NetworkConfig:
+        return NetworkConfig(dueling=self.dueling, **ABLATIONS.get(self.variant, {}))
+
+
+def parse_stage(text: str) -> tuple[int, int]:
+    """'4x20' -> (4 agents, 20x20 map); ValueError naming the stage otherwise."""
+    try:
+        agents, size = (int(x) for x in str(text).lower().split("x"))
+    except ValueError:
+        raise ValueError(f"stage {text!r} is not AGENTSxSIZE (for example 4x20)") from None
+    if agents < 1 or size < 2 or 2 * agents > size * size:
+        raise ValueError(f"stage {text!r}: need 1 <= agents and 2 * agents <= size^2")
+    return agents, size
+
+
+# --- episodes -> replay rows --------------------------------------------------------------------------------
+ROW_SPECS = {  # one agent's n-step transition; fov values are 0/1
+    "fov": (np.uint8, (6, 9, 9)), "last_action": (np.int8, ()), "position": (np.int16, (2,)),
+    "action": (np.int8, ()), "ret": (np.float32, ()), "boot_gamma": (np.float32, ()),
+    "next_fov": (np.uint8, (6, 9, 9)), "next_last_action": (np.int8, ()), "next_position": (np.int16, (2,)),
+    "expert": (np.int8, ()), "mc_return": (np.float32, ()), "refused": (np.bool_, ()),
+}
+
+
+def play_episode(forward, env: MapfEnv, epsilon: float, rng, oracle=None, budget: float = 0.0,
+                 expert_drives: bool = False) -> tuple[dict, dict]:
+    """One episode, every agent acting on its own observation (all in one batch).
+
+    Actions: argmax Q (the paper's greedy rule; ties to the lowest index), or the expert's when
+    `expert_drives`; then each agent acts uniformly at random with probability `epsilon`. With `oracle`,
+    states are labelled until it fails or `budget` seconds are spent. Returns per-step arrays
+    (T steps, N agents; obs has T + 1 entries) and stats."""
+    obs, _ = env.reset()
+    steps = {"obs": [obs], "action": [], "reward": [], "expert": [], "failed": []}
+    spent, labelled, done, terminated = 0.0, 0, False, False
+    while not done:
+        expert = np.full(env.n_agents, -1, dtype=np.int64)
+        if oracle is not None and spent < budget:
+            t0 = time.perf_counter()
+            try:
+                expert = oracle.actions(env.positions)
+                labelled += env.n_agents
+            except ExpertFailed:
+                oracle = None
+            spent += time.perf_counter() - t0
+        if expert_drives and expert[0] >= 0:
+            actions = expert.copy()
+        else:
+            with torch.inference_mode():
+                q = forward(*(torch.from_numpy(obs[k]) for k in ("fov", "last_action", "position"))).numpy()
+            actions = q.argmax(axis=1)
+        explore = rng.random(env.n_agents) < epsilon
+        actions[explore] = rng.integers(0, 5, int(explore.sum()))
+        obs, reward, terminated, truncated, info = env.step(actions)
+        for k, v in (("obs", obs), ("action", actions), ("reward", reward), ("expert", expert), ("failed", info["failed"])):
+            steps[k].append(v)
+        done = terminated or truncated
+    stats = {"success": bool(terminated), "steps": env.step_count, "n_agents": env.n_agents, "labelled": labelled,
+             "oracle_s": spent, "expert_drove": expert_drives and labelled > 0}
+    return steps, {**stats, "terminated": bool(terminated)}
+
+
+def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int) -> dict:
+    """Replay rows of every agent and step: n-step return, bootstrap state and discount, Monte Carlo return.
+
+    Row (t, i): ret = sum_{k<m} gamma^k r[t+k, i] with m = min(n, T - t); bootstrap from obs[t + m] with
+    discount gamma^m, or 0 when the episode terminated at t + m = T. A time-limit end is no terminal state."""
+    reward = np.stack(steps["reward"]).astype(np.float64)  # (T, N)
+    t_len, n_agents = reward.shape
+    mc = np.zeros_like(reward)
+    acc = np.zeros(n_agents)
+    for t in range(t_len - 1, -1, -1):
+        acc = reward[t] + gamma * acc
+        mc[t] = acc
+    ret = np.zeros_like(reward)
+    for k in range(n_step):
+        ret[: t_len - k] += gamma ** k * reward[k:]
+    m = np.minimum(n_step, t_len - np.arange(t_len))  # (T,)
+    boot_gamma = gamma ** m.astype(np.float64)
+    if terminated:
+        boot_gamma[np.arange(t_len) + m == t_len] = 0.0
+    obs = steps["obs"]
+    fov = np.stack([o["fov"] for o in obs]).astype(np.uint8)  # (T+1, N, 6, l, l)
+    last = np.stack([o["last_action"].argmax(axis=1) for o in obs]).astype(np.int8)
+    pos = np.stack([o["position"] for o in obs]).astype(np.int16)
+    nxt = np.arange(t_len) + m
+    flat = lambda a: a.reshape((t_len * n_agents,) + a.shape[2:])  # noqa: E731 (row order: step-major)
+    return {
+        "fov": flat(fov[:-1]), "last_action": flat(last[:-1]), "position": flat(pos[:-1]),
+        "action": flat(np.stack(steps["action"]).astype(np.int8)), "ret": flat(ret.astype(np.float32)),
+        "boot_gamma": flat(np.repeat(boot_gamma[:, None], n_agents, 1).astype(np.float32)),
+        "next_fov": flat(fov[nxt]), "next_last_action": flat(last[nxt]), "next_position": flat(pos[nxt]),
+        "expert": flat(np.stack(steps["expert"]).astype(np.int8)), "mc_return": flat(mc.astype(np.float32)),
+        "refused": flat(np.stack(steps["failed"]).astype(bool)),
+    }
+
+
+class Replay:
+    """Ring buffer of ROW_SPECS rows; uniform sampling."""
+
+    def __init__(self, capacity: int):
+        self.capacity, self.size, self.cursor = capacity, 0, 0
+        self.data = {k: np.zeros((capacity,) + shape, dtype=dt) for k, (dt, shape) in ROW_SPECS.items()}
+
+    def add(self, rows: dict) -> None:
+        n = len(rows["action"])
+        if n > self.capacity:
+            rows, n = {k: v[-self.capacity:] for k, v in rows.items()}, self.capacity
+        idx = (self.cursor + np.arange(n)) % self.capacity
+        for k in ROW_SPECS:
+            self.data[k][idx] = rows[k]
+        self.cursor, self.size = (self.cursor + n) % self.capacity, min(self.capacity, self.size + n)
+
+    def sample(self, n: int, rng) -> dict:
+        idx = rng.integers(0, self.size, n)
+        eye = torch.eye(5)
+        b = {k: torch.from_numpy(v[idx]) for k, v in self.data.items()}
+        t = {"action": b["action"].long(), "expert": b["expert"].long(), "refused": b["refused"]}
+        for k in ("ret", "boot_gamma", "mc_return"):
+            t[k] = b[k]
+        for pre in ("", "next_"):
+            t[pre + "fov"] = b[pre + "fov"].float().contiguous(memory_format=torch.channels_last)
+            t[pre + "last_action"] = eye[b[pre + "last_action"].long()]
+            t[pre + "position"] = b[pre + "position"].float()
+        return t
+
+
+# --- losses and what to look at -----------------------------------------------------------------------------
+def losses(q: torch.Tensor, next_q_target: torch.Tensor, batch: dict, args: Args) -> tuple:
+    """(DQN term, HSCL term, TD errors): Huber on the n-step TD error; HSCL on the advantage (dueling) or on Q."""
+    q_taken = q.gather(1, batch["action"][:, None]).squeeze(1)
+    target = batch["ret"] + batch["boot_gamma"] * next_q_target.max(dim=1).values
+    td = target - q_taken
+    l_dqn = F.huber_loss(q_taken, target, delta=args.huber_delta)
+    labelled = batch["expert"] >= 0
+    if labelled.any():
+        scores = q - q.mean(dim=1, keepdim=True) if args.dueling else q  # the advantage A of the dueling split
+        l_hscl = hscl_loss(scores[labelled], batch["expert"][labelled], args.tau_h, args.temperature)
+    else:
+        l_hscl = q.sum() * 0.0
+    return l_dqn, l_hscl, td.detach()
+
+
+def grad_norm(loss: torch.Tensor, params) -> float:
+    grads = torch.autograd.grad(loss, params, retain_graph=True, allow_unused=True)
+    return float(torch.sqrt(sum((g.float() ** 2).sum() for g in grads if g is not None)))
+
+
+def correlation(a: torch.Tensor, b: torch.Tensor) -> float:
+    a, b = a.double() - a.double().mean(), b.double() - b.double().mean()
+    den = float(a.norm() * b.norm())
+    return float((a * b).sum()) / den if den > 0 else float("nan")
+
+
+def greedy_success(forward, cases: list, last_action: str, max_steps: int) -> tuple[float, float]:
+    """Success rate and average step (a failure counts max_steps) with argmax Q and no exploration."""
+    outcomes = []
+    for inst in cases:
+        env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=last_action)
+        _, stats = play_episode(forward, env, 0.0, np.random.default_rng(0))
+        outcomes.append((stats["success"], stats["steps"] if stats["success"] else max_steps))
+    return float(np.mean([s for s, _ in outcomes])), float(np.mean([t for _, t in outcomes]))
+
+
+TRAIN_COLUMNS = ("step", "stage", "episodes", "l_dqn", "l_hscl", "hscl_weight", "dqn_share", "td_abs", "td_refused",
+                 "refused_rows", "q_mean", "mc_return_mean", "q_return_corr", "agreement", "train_success",
+                 "train_steps", "mean_team", "samples_per_s", "learner_steps_per_s", "env_rows_per_s", "epsilon",
+                 "elapsed_s")
+EVAL_COLUMNS = ("step", "stage", "agents", "size", "success_rate", "average_step")
+
+
+# --- the run ---------------------------------------------------------------------------------------------
+def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
+    args.validate()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.json").write_text(json.dumps(dataclasses.asdict(args), indent=1))
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(np.random.SeedSequence([args.seed, 11]))
+    stages = [parse_stage(s) for s in args.stages]
+    ncfg = args.network_config()
+    net = QNetwork(ncfg).to(memory_format=torch.channels_last)
+    target = QNetwork(ncfg).to(memory_format=torch.channels_last)
+    opt = torch.optim.Adam(net.parameters(), lr=args.lr)
+    state = {"step": 0, "stage": 0, "episodes": 0, "elapsed": 0.0, "hscl_weight": args.hscl_weight}
+    resumed = _resume(run_dir, Path(args.publish_dir) if args.publish_dir else None, net, target, opt, state, ncfg)
+    if not resumed:
+        target.load_state_dict(net.state_dict())
+    truncate_log(run_dir / "train.csv", state["step"])
+    truncate_log(run_dir / "eval.csv", state["step"])
+    online_q, target_q, act_q = FastForward(net), InferenceNet(target), InferenceNet(net)
+    params = [p for p in net.parameters()]
+    replay = Replay(args.replay_capacity)
+    valid = {k: generated_cases(args.seed, VALID_STREAM, [a], args.eval_cases, s, args.density)
+             for k, (a, s) in enumerate(stages)}
+    train_log, eval_log = CsvLog(run_dir / "train.csv", TRAIN_COLUMNS), CsvLog(run_dir / "eval.csv", EVAL_COLUMNS)
+    window = {"rows": 0, "steps": 0, "t": time.monotonic(), "m": collections.defaultdict(list), "eps": []}
+    session_t0, last_ckpt, owed = time.monotonic(), time.monotonic(), 0.0
+    deadline = session_t0 + 60 * args.session_minutes if args.session_minutes > 0 else float("inf")
+    stop = {"now": False}
+    signal.signal(signal.SIGTERM, lambda *_: stop.update(now=True))
+    bar = tqdm(total=args.total_steps, initial=state["step"], desc=run_dir.name, unit="step", disable=not progress,
+               mininterval=1.0 if sys.stderr.isatty() else 60.0)
+    eps_at = lambda step: args.eps_start + min(1.0, step / max(1, args.eps_decay_steps)) * (args.eps_end - args.eps_start)  # noqa: E731
+    try:
+        while state["step"] < args.total_steps and not stop["now"] and time.monotonic() < deadline:
+            # 1. One episode: the current stage, or an earlier one for review; expert- or policy-driven.
+            k = state["stage"]
+            if k > 0 and rng.random() < args.review_fraction:
+                k = int(rng.integers(0, k))
+            agents, size = stages[k]
+            ep_rng = instance_rng(args.seed, ACTOR_STREAM, state["episodes"])
+            inst = generate_instance(ep_rng, size=size, density=args.density, n_agents=agents)
+            env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=args.max_episode_steps, last_action=args.last_action)
+            drive = ep_rng.random() < args.expert_drive_fraction
+            oracle = None
+            if drive or ep_rng.random() < args.relabel_fraction:
+                oracle = make_oracle(args.expert, env.grid, env.goals, env.dist, args.expert_epsilon,
+                                     min(args.expert_time_limit, args.relabel_time_budget))
+            steps, stats = play_episode(act_q, env, eps_at(state["step"]), rng, oracle, args.relabel_time_budget, drive)
+            rows = episode_rows(steps, stats["terminated"], args.gamma, args.n_step)
+            replay.add(rows)
+            state["episodes"] += 1
+            window["rows"] += len(rows["action"])
+            window["eps"].append(stats)
+            if replay.size < args.learning_starts:
+                continue
+            # 2. Gradient steps: replay_ratio rows drawn per row produced.
+            owed += len(rows["action"]) * args.replay_ratio / args.batch_size
+            while owed >= 1.0 and state["step"] < args.total_steps and not stop["now"]:
+                owed -= 1.0
+                batch = replay.sample(args.batch_size, rng)
+                with torch.autocast("cpu", dtype=torch.bfloat16, enabled=args.bf16):
+                    q = online_q(batch["fov"], batch["last_action"], batch["position"]).float()
+                with torch.no_grad():
+                    next_q = target_q(batch["next_fov"], batch["next_last_action"], batch["next_position"])
+                l_dqn, l_hscl, td = losses(q, next_q, batch, args)
+                loss = args.dqn_weight * l_dqn + state["hscl_weight"] * l_hscl
+                state["step"] += 1
+                logging = state["step"] % args.log_every == 0
+                if logging:  # 3. Look inside: each term's gradient, TD errors where moves were refused, Q vs return.
+                    g_dqn = grad_norm(args.dqn_weight * l_dqn, params)
+                    g_hscl = grad_norm(state["hscl_weight"] * l_hscl, params) if l_hscl.requires_grad else 0.0
+                    share = g_dqn / max(1e-12, g_dqn + g_hscl)
+                    if args.dqn_share > 0 and g_hscl > 0 and g_dqn > 0:
+                        # Steer the HSCL weight toward the target share (a gentle multiplicative step, clipped).
+                        wanted = g_dqn * (1 - args.dqn_share) / args.dqn_share / (g_hscl / state["hscl_weight"])
+                        state["hscl_weight"] = float(np.clip(state["hscl_weight"] * (wanted / state["hscl_weight"]) ** 0.3,
+                                                             1e-4, 100.0))
+                    q_taken = q.detach().gather(1, batch["action"][:, None]).squeeze(1)
+                    ref = batch["refused"]
+                    lab = batch["expert"] >= 0
+                    m = window["m"]
+                    m["dqn_share"].append(share)
+                    m["td_abs"].append(float(td.abs().mean()))
+                    m["refused_rows"].append(int(ref.sum()))
+                    if ref.any():
+                        m["td_refused"].append(float(td[ref].abs().mean()))
+                    m["q_mean"].append(float(q_taken.mean()))
+                    m["mc_return_mean"].append(float(batch["mc_return"].mean()))
+                    m["q_return_corr"].append(correlation(q_taken, batch["mc_return"]))
+                    if lab.any():
+                        m["agreement"].append(expert_agreement(q.detach()[lab], batch["expert"][lab]))
+                m_l = window["m"]
+                m_l["l_dqn"].append(l_dqn.item())
+                m_l["l_hscl"].append(l_hscl.item())
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(params, args.grad_clip)
+                opt.step()
+                window["steps"] += 1
+                bar.update(1)
+                if state["step"] % args.target_update_every == 0:
+                    target.load_state_dict(net.state_dict())
+                if logging:
+                    row = _log_row(args, state, window, session_t0, eps_at(state["step"]))
+                    train_log.write(row)
+                    bar.set_postfix(stage=args.stages[state["stage"]], share=f"{row['dqn_share']:.2f}",
+                                    agree=f"{row['agreement']:.2f}", sr=f"{row['train_success']:.2f}")
+                    window.update(rows=0, steps=0, t=time.monotonic(), m=collections.defaultdict(list), eps=[])
+                if args.eval_every and state["step"] % args.eval_every == 0:
+                    # 4. Greedy on validation cases; the curriculum moves on when the current stage passes.
+                    current = state["stage"]
+                    for j in range(min(len(stages), current + 2)):
+                        sr, avg = greedy_success(act_q, valid[j], args.last_action, args.max_episode_steps)
+                        eval_log.write({"step": state["step"], "stage": args.stages[j], "agents": stages[j][0],
+                                        "size": stages[j][1], "success_rate": sr, "average_step": avg})
+                        if j == current and sr >= args.advance_pass_rate and current + 1 < len(stages):
+                            state["stage"] = current + 1
+                            save_model(run_dir / f"passed_{args.stages[current]}.pt", net, ncfg,
+                                       {"step": state["step"], "recipe": "dqn_hscl", "last_action": args.last_action})
+                            tqdm.write(f"step {state['step']}: stage {args.stages[current]} passed (greedy {sr:.3f}), "
+                                       f"now {args.stages[current + 1]}")
+            if time.monotonic() - last_ckpt > 60 * args.checkpoint_minutes:
+                _checkpoint(args, run_dir, net, target, opt, state, session_t0)
+                last_ckpt = time.monotonic()
+    except KeyboardInterrupt:
+        tqdm.write(f"interrupted at step {state['step']}")
+    finally:
+        bar.close()
+        _checkpoint(args, run_dir, net, target, opt, state, session_t0)
+    return state
+
+
+def _log_row(args: Args, state: dict, window: dict, session_t0: float, epsilon: float) -> dict:
+    dt = max(1e-9, time.monotonic() - window["t"])
+    mean = lambda k: float(np.mean(window["m"][k])) if window["m"][k] else float("nan")  # noqa: E731
+    eps = window["eps"]
+    return {"step": state["step"], "stage": args.stages[state["stage"]], "episodes": state["episodes"],
+            "l_dqn": mean("l_dqn"), "l_hscl": mean("l_hscl"), "hscl_weight": state["hscl_weight"],
+            "dqn_share": mean("dqn_share"), "td_abs": mean("td_abs"), "td_refused": mean("td_refused"),
+            "refused_rows": int(sum(window["m"]["refused_rows"])), "q_mean": mean("q_mean"),
+            "mc_return_mean": mean("mc_return_mean"), "q_return_corr": mean("q_return_corr"), "agreement": mean("agreement"),
+            "train_success": float(np.mean([e["success"] for e in eps if not e["expert_drove"]] or [np.nan])),
+            "train_steps": float(np.mean([e["steps"] for e in eps] or [np.nan])),
+            "mean_team": float(np.mean([e["n_agents"] for e in eps] or [np.nan])),
+            "samples_per_s": window["steps"] * args.batch_size / dt, "learner_steps_per_s": window["steps"] / dt,
+            "env_rows_per_s": window["rows"] / dt, "epsilon": epsilon,
+            "elapsed_s": round(state["elapsed"] + time.monotonic() - session_t0, 1)}
+
+
+# --- checkpoints and resuming -------------------------------------------------------------------------------
+def _checkpoint(args: Args, run_dir: Path, net, target, opt, state: dict, session_t0: float) -> None:
+    """runs/<name>/checkpoint.pt (with the optimizer, for this machine) and last.pt + state.json (weights and
+    counters only: what publish_dir carries to a fresh machine)."""
+    st = {**state, "elapsed": state["elapsed"] + time.monotonic() - session_t0}
+    meta = {"step": st["step"], "recipe": "dqn_hscl", "last_action": args.last_action, "train_args": _plain(args)}
+    tmp = run_dir / "checkpoint.pt.tmp"
+    torch.save({"state": st, "target": target.state_dict(), "optimizer": opt.state_dict()}, tmp)
+    os.replace(tmp, run_dir / "checkpoint.pt")
+    save_model(run_dir / "last.pt", net, args.network_config(), meta)
+    (run_dir / "state.json").write_text(json.dumps(st, indent=1))
+    plot_run(run_dir)
+    if args.publish_dir:
+        pub = Path(args.publish_dir)
+        pub.mkdir(parents=True, exist_ok=True)
+        for name in ("last.pt", "state.json", "config.json", "train.csv", "eval.csv", "training.png"):
+            if (run_dir / name).is_file():
+                data = (run_dir / name).read_bytes()
+                (pub / (name + ".tmp")).write_bytes(data)
+                os.replace(pub / (name + ".tmp"), pub / name)
+
+
+def _plain(args: Args) -> dict:
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(args).items()}
+
+
+def _resume(run_dir: Path, publish: Path | None, net, target, opt, state: dict, ncfg: NetworkConfig) -> bool:
+    """Full resume from runs/<name>/checkpoint.pt; else weights-only from publish_dir (fresh optimizer, target =
+    online); else nothing (a new run). Returns whether it resumed."""
+    ck = run_dir / "checkpoint.pt"
+    if ck.is_file() and (run_dir / "last.pt").is_file():
+        loaded, cfg, _ = load_model(run_dir / "last.pt")
+        if cfg != ncfg:
+            raise ValueError(f"{run_dir}: the saved network {cfg} differs from this run's {ncfg}")
+        payload = torch.load(ck, map_location="cpu", weights_only=True)
+        net.load_state_dict(loaded.state_dict())
+        target.load_state_dict(payload["target"])
+        opt.load_state_dict(payload["optimizer"])
+        state.update(payload["state"])
+        print(f"resumed {run_dir} at step {state['step']} (stage {state['stage']})")
+        return True
+    if publish is not None and (publish / "last.pt").is_file() and (publish / "state.json").is_file():
+        loaded, cfg, _ = load_model(publish / "last.pt")
+        if cfg != ncfg:
+            raise ValueError(f"{publish}: the published network {cfg} differs from this run's {ncfg}")
+        net.load_state_dict(loaded.state_dict())
+        target.load_state_dict(loaded.state_dict())
+        state.update(json.loads((publish / "state.json").read_text()))
+        for name in ("train.csv", "eval.csv"):
+            if (publish / name).is_file() and not (run_dir / name).is_file():
+                (run_dir / name).write_bytes((publish / name).read_bytes())
+        print(f"resumed weights from {publish} at step {state['step']} (fresh optimizer)")
+        return True
+    return False
+
+
+def plot_run(run_dir: Path) -> Path | None:
+    """training.png: the terms and their gradient shares, TD errors, Q vs returns, greedy validation per stage."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not (run_dir / "train.csv").is_file():
+        return None
+    log = _read_log(run_dir / "train.csv")
+    if not log:
+        return None
+    ev = _read_log(run_dir / "eval.csv") if (run_dir / "eval.csv").is_file() else {}
+    s = log["step"]
+    fig, ax = plt.subplots(2, 4, figsize=(18, 7.5), constrained_layout=True)
+    ax[0, 0].plot(s, log["l_dqn"], lw=1, label="DQN (Huber)")
+    ax[0, 0].plot(s, log["l_hscl"], lw=1, label="HSCL")
+    ax[0, 0].set_yscale("log"), ax[0, 0].set_title("loss terms"), ax[0, 0].legend(fontsize=7)
+    ax[0, 1].plot(s, log["dqn_share"], lw=1, label="DQN share of |grad|")
+    ax[0, 1].plot(s, log["hscl_weight"], lw=1, label="HSCL weight")
+    ax[0, 1].set_title("gradient share"), ax[0, 1].legend(fontsize=7)
+    ax[0, 2].plot(s, log["td_abs"], lw=1, label="|TD| all rows")
+    ax[0, 2].plot(s, log["td_refused"], lw=1, label="|TD| refused-move rows")
+    ax[0, 2].set_title("TD error"), ax[0, 2].legend(fontsize=7)
+    ax[0, 3].plot(s, log["q_mean"], lw=1, label="mean Q(s,a)")
+    ax[0, 3].plot(s, log["mc_return_mean"], lw=1, label="mean MC return")
+    ax[0, 3].plot(s, log["q_return_corr"], lw=1, label="corr(Q, MC return)")
+    ax[0, 3].set_title("Q against returns"), ax[0, 3].legend(fontsize=7)
+    ax[1, 0].plot(s, log["agreement"], lw=1)
+    ax[1, 0].set_title("argmax Q = expert label (batch)")
+    ax[1, 1].plot(s, log["train_success"], lw=1, label="training episodes (eps-greedy)")
+    if ev:
+        for st in sorted(set(ev["stage"])):
+            sel = ev["stage"] == st
+            ax[1, 1].plot(ev["step"][sel], ev["success_rate"][sel], "o-", ms=3, lw=1, label=f"greedy validation {st}")
+    ax[1, 1].set_title("success rate"), ax[1, 1].legend(fontsize=6)
+    ax[1, 2].plot(s, log["stage_index"], lw=1)
+    ax[1, 2].set_title("curriculum stage (index)")
+    ax[1, 3].plot(s, log["learner_steps_per_s"], lw=1, label="learner steps/s")
+    ax[1, 3].plot(s, log["env_rows_per_s"] / 100, lw=1, label="env rows/s / 100")
+    ax[1, 3].set_title("speed"), ax[1, 3].legend(fontsize=7)
+    for a in ax.flat:
+        a.set_xlabel("learner step"), a.grid(alpha=0.3)
+    out = run_dir / "training.png"
+    fig.savefig(out, dpi=80)
+    plt.close(fig)
+    return out
+
+
+def _read_log(path: Path) -> dict:
+    """read_csv, with the 'stage' column kept as text (and its order as stage_index)."""
+    import csv
+
+    with path.open() as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return {}
+    out = {}
+    for key in rows[0]:
+        if key == "stage":
+            out[key] = np.array([r[key] for r in rows])
+        else:
+            out[key] = np.array([float(r[key]) if r[key] != "" else np.nan for r in rows])
+    if "stage" in out:
+        order = list(dict.fromkeys(out["stage"]))
+        out["stage_index"] = np.array([order.index(v) for v in out["stage"]], dtype=float)
+    return out
+
+
+# --- command line ---------------------------------------------------------------------------------------
+def main(argv=None) -> int:
+    from mapf_policy.train.__main__ import field_docs
+
+    parser = argparse.ArgumentParser(prog="scripts/dqn_hscl", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    docs = field_docs(Args)
+    for f in dataclasses.fields(Args):
+        flag, helptext = "--" + f.name.replace("_", "-"), f"{docs.get(f.name, '')} (default: {f.default!r})"
+        if isinstance(f.default, bool):
+            parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=f.default, help=helptext)
+        elif isinstance(f.default, tuple):
+            parser.add_argument(flag, dest=f.name, nargs="+", default=f.default, help=helptext)
+        else:
+            parser.add_argument(flag, dest=f.name, type=type(f.default), default=f.default, help=helptext)
+    parser.add_argument("--runs-dir", default="runs", help="where run directories live (default: runs)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ns = parser.parse_args(argv)
+    values = {f.name: getattr(ns, f.name) for f in dataclasses.fields(Args)}
+    values["stages"] = tuple(values["stages"])
+    try:
+        args = Args(**values)
+        args.validate()
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    run_dir = Path(ns.runs_dir) / args.run_name
+    saved = run_dir / "config.json"
+    if saved.is_file():
+        old = json.loads(saved.read_text())
+        schedule = {"total_steps", "session_minutes", "eval_every", "log_every", "checkpoint_minutes", "publish_dir", "threads"}
+        differ = sorted(k for k, v in _plain(args).items() if k not in schedule and old.get(k) != v)
+        if differ:
+            print(f"error: run {run_dir} exists with other values of {differ}; resume without them or pick another "
+                  f"--run-name", file=sys.stderr)
+            return 2
+    print(f"run {run_dir}\n" + json.dumps(_plain(args), indent=1))
+    state = train(args, run_dir, progress=not ns.no_progress)
+    print(f"stopped at step {state['step']}, stage {args.stages[state['stage']]}; model {run_dir / 'last.pt'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,101 @@
+"""The ladder of the second design: `scripts/ladder MODEL --rung N`, each rung passed before the next.
+
+Greedy argmax (the paper's rule, no exploration, no mask), on held-out generated cases of the comparison
+stream (COMPARE_STREAM: never trained on, never the benchmark), density 0.3, 256 steps. A model's
+observation uses the last-action mode it was trained with (its metadata; 'requested' for older models).
+
+  rung 1  1 agent on 10x10            success 1.0
+  rung 2  4 agents on 20x20           success >= 0.99
+  rung 3  16 agents on 40x40          success >= 0.99
+  rung 4  1-64 agents on 40x40        success >= the paper's greedy figures (Table III) at 4..64, 1.0 below
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from mapf_policy.inference import InferenceNet
+from mapf_policy.model_io import load_model
+from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
+from mapf_policy.train.dqn_hscl import play_episode
+from mapf_world.env import MapfEnv
+
+# rung -> (what, [(agents, map side, success bar)])
+RUNGS = {
+    1: ("1 agent on 10x10", [(1, 10, 1.0)]),
+    2: ("4 agents on 20x20", [(4, 20, 0.99)]),
+    3: ("16 agents on 40x40", [(16, 40, 0.99)]),
+    4: ("1-64 agents on 40x40", [(1, 40, 1.0), (2, 40, 1.0), (4, 40, 1.0), (8, 40, 0.995), (16, 40, 0.995),
+                                 (32, 40, 0.955), (64, 40, 0.845)]),
+}
+
+
+def model_last_action(meta: dict) -> str:
+    """The last-action mode a model was trained with (models before the second design: 'requested')."""
+    return meta.get("last_action", "requested")
+
+
+def run_rung(path, rung: int, cases: int, seed: int = 0, density: float = 0.3, max_steps: int = 256,
+             progress: bool = True) -> list[dict]:
+    if rung not in RUNGS:
+        raise ValueError(f"rung must be one of {sorted(RUNGS)}, got {rung}")
+    net, _, meta = load_model(path)
+    forward, mode = InferenceNet(net), model_last_action(meta)
+    rows = []
+    for agents, side, bar in RUNGS[rung][1]:
+        insts = generated_cases(seed, COMPARE_STREAM, [agents], cases, side, density)
+        t0, outcomes = time.perf_counter(), []
+        for inst in tqdm(insts, desc=f"rung {rung}: {agents} agents, {side}x{side}", unit="case", disable=not progress):
+            env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode)
+            _, stats = play_episode(forward, env, 0.0, np.random.default_rng(0))
+            outcomes.append((stats["success"], stats["steps"] if stats["success"] else max_steps))
+        success = float(np.mean([s for s, _ in outcomes]))
+        rows.append({"rung": rung, "agents": agents, "map": side, "cases": cases, "success_rate": success,
+                     "successes": int(sum(s for s, _ in outcomes)),
+                     "average_step": float(np.mean([t for _, t in outcomes])), "bar": bar, "passed": success >= bar,
+                     "last_action": mode, "seconds": round(time.perf_counter() - t0, 1)})
+    return rows
+
+
+def markdown(model: str, rows: list[dict]) -> str:
+    lines = [f"model `{model}`, greedy argmax, held-out cases (seed stream {COMPARE_STREAM}), last action: {rows[0]['last_action']}",
+             "", "| rung | agents | map | cases | success | average step | bar | passed |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['rung']} | {r['agents']} | {r['map']}x{r['map']} | {r['cases']} | {r['success_rate']:.3f} "
+                     f"({r['successes']}) | {r['average_step']:.2f} | {r['bar']} | {'yes' if r['passed'] else 'NO'} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="scripts/ladder", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("model", help="model file (.pt)")
+    p.add_argument("--rung", type=int, nargs="+", default=[1], help="rungs to check (default: 1)")
+    p.add_argument("--cases", type=int, default=100, help="cases per team size (default 100)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the held-out cases (default 0)")
+    p.add_argument("--json", help="also write the rows here")
+    p.add_argument("--no-progress", action="store_true")
+    args = p.parse_args(argv)
+    if args.cases < 1:
+        print("error: --cases must be >= 1", file=sys.stderr)
+        return 2
+    torch.set_num_threads(1)
+    try:
+        rows = [r for k in args.rung for r in run_rung(args.model, k, args.cases, args.seed, progress=not args.no_progress)]
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(markdown(args.model, rows))
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    return 0 if all(r["passed"] for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,75 @@
+"""scripts/dqn_hscl and scripts/ladder end to end with tiny budgets: logs, resume, fresh-machine resume."""
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import subprocess
+
+import pytest
+
+from mapf_policy.model_io import load_model
+
+TINY = ["--stages", "1x6", "2x6", "--total-steps", "12", "--batch-size", "16", "--learning-starts", "40",
+        "--log-every", "4", "--eval-every", "6", "--eval-cases", "2", "--expert", "shortest_path",
+        "--max-episode-steps", "32", "--no-progress"]
+
+
+def _run(repo_root, tmp_path, *extra):
+    cmd = [str(repo_root / "scripts" / "dqn_hscl"), *TINY, "--runs-dir", str(tmp_path / "runs"), *extra]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=180)
+
+
+def _rows(path):
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.mark.slow
+def test_dqn_hscl_logs_what_it_learns_and_resumes(repo_root, tmp_path):
+    pub = tmp_path / "published"
+    first = _run(repo_root, tmp_path, "--run-name", "t", "--publish-dir", str(pub))
+    assert first.returncode == 0, first.stderr[-3000:]
+    run = tmp_path / "runs" / "t"
+    rows = _rows(run / "train.csv")
+    assert [int(r["step"]) for r in rows] == [4, 8, 12]
+    for r in rows:  # every monitored figure is a number in its range
+        assert 0.0 <= float(r["dqn_share"]) <= 1.0
+        assert float(r["hscl_weight"]) > 0 and float(r["learner_steps_per_s"]) > 0
+        assert -1.0 <= float(r["q_return_corr"]) <= 1.0 and float(r["td_abs"]) >= 0
+    evals = _rows(run / "eval.csv")
+    assert {int(e["step"]) for e in evals} == {6, 12} and evals[0]["stage"] == "1x6"
+    net, cfg, meta = load_model(run / "last.pt")
+    assert cfg.dueling and meta["step"] == 12 and meta["last_action"] == "executed"
+    for name in ("last.pt", "state.json", "config.json", "train.csv", "training.png"):
+        assert (pub / name).is_file(), name
+
+    longer = _run(repo_root, tmp_path, "--run-name", "t", "--total-steps", "16")  # same run: full resume
+    assert longer.returncode == 0, longer.stderr[-3000:]
+    assert "resumed" in longer.stdout and [int(r["step"]) for r in _rows(run / "train.csv")][-1] == 16
+
+    shutil.rmtree(tmp_path / "runs")  # a fresh machine: only the published folder is left
+    fresh = _run(repo_root, tmp_path, "--run-name", "t", "--total-steps", "20", "--publish-dir", str(pub))
+    assert fresh.returncode == 0, fresh.stderr[-3000:]
+    assert "resumed weights from" in fresh.stdout
+    assert json.loads((pub / "state.json").read_text())["step"] == 20
+
+    clash = _run(repo_root, tmp_path, "--run-name", "t", "--lr", "0.5")
+    assert clash.returncode == 2 and "lr" in clash.stderr
+    bad = _run(repo_root, tmp_path, "--run-name", "u", "--stages", "4by20")
+    assert bad.returncode == 2 and "AGENTSxSIZE" in bad.stderr
+
+
+@pytest.mark.slow
+def test_ladder_reports_a_rung_and_fails_an_untrained_model(repo_root, tmp_path):
+    run = _run(repo_root, tmp_path, "--run-name", "l", "--total-steps", "4")
+    assert run.returncode == 0, run.stderr[-3000:]
+    model = tmp_path / "runs" / "l" / "last.pt"
+    out = subprocess.run([str(repo_root / "scripts" / "ladder"), str(model), "--rung", "1", "--cases", "5",
+                          "--json", str(tmp_path / "l.json"), "--no-progress"], capture_output=True, text=True, timeout=120)
+    rows = json.loads((tmp_path / "l.json").read_text())
+    assert rows[0]["agents"] == 1 and rows[0]["map"] == 10 and rows[0]["cases"] == 5
+    assert out.returncode == (0 if rows[0]["passed"] else 1) and "| 1 | 1 | 10x10 | 5 |" in out.stdout
+    missing = subprocess.run([str(repo_root / "scripts" / "ladder"), str(tmp_path / "nope.pt")], capture_output=True,
+                             text=True, timeout=60)
+    assert missing.returncode == 2 and "does not exist" in missing.stderr

@@ -1,0 +1,119 @@
+"""The second training design's pieces: n-step rows, losses on the dueling split, the executed last action."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from mapf_policy.config import NetworkConfig
+from mapf_policy.network import QNetwork, count_parameters
+from mapf_policy.train.dqn_hscl import Args, Replay, episode_rows, losses, parse_stage, play_episode
+from mapf_world.env import MapfEnv
+from mapf_world.grid import STAY
+
+
+def _steps(rewards, n_agents=1, l=9):
+    """Per-step arrays of a fake episode with the given (T, N) rewards; observation t has position (t, 0)."""
+    rewards = np.asarray(rewards, dtype=np.float32).reshape(len(rewards), n_agents)
+    t_len = len(rewards)
+    obs = [{"fov": np.zeros((n_agents, 6, l, l), np.float32), "last_action": np.eye(5, dtype=np.float32)[[t % 5] * n_agents],
+            "position": np.full((n_agents, 2), t, np.float32)} for t in range(t_len + 1)]
+    return {"obs": obs, "action": [np.ones(n_agents, np.int64)] * t_len, "reward": list(rewards),
+            "expert": [np.full(n_agents, 2)] * t_len, "failed": [np.zeros(n_agents, bool)] * t_len}
+
+
+def test_n_step_rows_of_a_terminated_episode():
+    g = 0.9
+    rows = episode_rows(_steps([-1, -2, 3]), terminated=True, gamma=g, n_step=2)
+    np.testing.assert_allclose(rows["ret"], [-1 + g * -2, -2 + g * 3, 3], rtol=1e-6)
+    # bootstrap from obs[t + 2] (or the end), discount gamma^m, none into the terminal state
+    np.testing.assert_allclose(rows["boot_gamma"], [g ** 2, 0.0, 0.0], rtol=1e-6)
+    assert rows["next_position"][:, 0].tolist() == [2, 3, 3]
+    np.testing.assert_allclose(rows["mc_return"], [-1 + g * -2 + g * g * 3, -2 + g * 3, 3], rtol=1e-6)
+
+
+def test_n_step_rows_of_a_truncated_episode_bootstrap_at_the_end():
+    g = 0.5
+    rows = episode_rows(_steps([-1, -1, -1]), terminated=False, gamma=g, n_step=3)
+    np.testing.assert_allclose(rows["ret"], [-1.75, -1.5, -1.0])
+    np.testing.assert_allclose(rows["boot_gamma"], [g ** 3, g ** 2, g])  # a time limit is no terminal state
+    assert rows["next_last_action"].tolist() == [3, 3, 3]
+
+
+def test_rows_are_step_major_over_agents():
+    rows = episode_rows(_steps([[-1, 0], [3, 3]], n_agents=2), terminated=True, gamma=1.0, n_step=1)
+    np.testing.assert_allclose(rows["ret"], [-1, 0, 3, 3])
+    assert rows["position"][:, 0].tolist() == [0, 0, 1, 1]
+
+
+def test_replay_keeps_the_newest_and_builds_inputs():
+    rows = episode_rows(_steps([-1] * 5), terminated=False, gamma=0.9, n_step=1)
+    rep = Replay(3)
+    rep.add(rows)
+    assert rep.size == 3 and sorted(rep.data["position"][:, 0].tolist()) == [2, 3, 4]
+    b = rep.sample(4, np.random.default_rng(0))
+    assert b["fov"].shape == (4, 6, 9, 9) and b["last_action"].shape == (4, 5) and b["action"].dtype == torch.int64
+
+
+def test_dueling_network_adds_only_the_value_output():
+    plain, dueling = QNetwork(NetworkConfig()), QNetwork(NetworkConfig(dueling=True))
+    assert count_parameters(plain) == 1_004_443
+    assert count_parameters(dueling) == 1_004_443 + 301
+
+
+def test_hscl_on_the_advantage_ignores_the_level_of_q():
+    """A shift of every Q-value of a row (the value V) changes the DQN term, never the HSCL term."""
+    args = Args(dueling=True)
+    q = torch.randn(8, 5)
+    batch = {"action": torch.zeros(8, dtype=torch.long), "ret": torch.zeros(8), "boot_gamma": torch.zeros(8),
+             "expert": torch.tensor([0, 1, 2, 3, 4, 1, -1, 2])}
+    l1, l2, _ = losses(q, torch.zeros(8, 5), batch, args)
+    l1s, l2s, _ = losses(q + torch.randn(8, 1) * 5, torch.zeros(8, 5), batch, args)
+    assert torch.isclose(l2, l2s, atol=1e-5) and not torch.isclose(l1, l1s)
+    plain = Args(dueling=False)
+    assert not torch.isclose(losses(q, torch.zeros(8, 5), batch, plain)[1],
+                             losses(q + 5, torch.zeros(8, 5), batch, plain)[1])
+
+
+def test_td_error_uses_the_n_step_return_and_discount():
+    q = torch.tensor([[0.0, 1.0, 0, 0, 0]])
+    batch = {"action": torch.tensor([1]), "ret": torch.tensor([-0.5]), "boot_gamma": torch.tensor([0.81]),
+             "expert": torch.tensor([-1])}
+    _, _, td = losses(q, torch.tensor([[2.0, 0, 0, 0, 0]]), batch, Args())
+    assert td.item() == pytest.approx(-0.5 + 0.81 * 2.0 - 1.0)
+
+
+def test_executed_last_action_is_stay_after_a_refused_move():
+    grid = np.zeros((3, 3), np.uint8)
+    starts, goals = np.array([[1, 0], [1, 1]]), np.array([[1, 1], [1, 0]])
+    for mode, expect in (("requested", [4, 3]), ("executed", [STAY, STAY])):
+        env = MapfEnv(grid, starts, goals, last_action=mode)
+        env.reset()
+        obs, _, _, _, info = env.step([4, 3])  # a head-on swap: both refused
+        assert info["failed"].all()
+        assert obs["last_action"].argmax(axis=1).tolist() == expect
+    with pytest.raises(ValueError, match="last_action"):
+        MapfEnv(grid, starts, goals, last_action="planned")
+
+
+def test_play_episode_with_the_expert_driving_solves_and_labels():
+    from mapf_policy.train.expert import make_oracle
+
+    grid = np.zeros((5, 5), np.uint8)
+    env = MapfEnv(grid, np.array([[0, 0]]), np.array([[4, 4]]))
+    oracle = make_oracle("shortest_path", env.grid, env.goals, env.dist, 10.0, 1.0)
+    net = QNetwork(NetworkConfig(dueling=True)).eval()
+    steps, stats = play_episode(net, env, 0.0, np.random.default_rng(0), oracle, 10.0, expert_drives=True)
+    assert stats["success"] and stats["steps"] == 8 and stats["expert_drove"]
+    assert all(e[0] in (2, 4) for e in steps["expert"])
+
+
+@pytest.mark.parametrize("text,msg", [("4by20", "AGENTSxSIZE"), ("0x10", "agents"), ("60x10", "agents")])
+def test_bad_stages_and_args_are_named(text, msg):
+    with pytest.raises(ValueError, match=msg):
+        parse_stage(text)
+    with pytest.raises(ValueError, match="dqn_share"):
+        Args(dqn_share=1.0).validate()
+    with pytest.raises(ValueError, match="last_action"):
+        Args(last_action="both").validate()
+    assert parse_stage("16x40") == (16, 40)
