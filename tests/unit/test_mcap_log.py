@@ -114,3 +114,36 @@ def test_written_file_decodes_with_mcap_ros2(tmp_path):
 def test_bad_compression_is_refused(tmp_path):
     with pytest.raises(ValueError, match="compression"):
         McapRos2Writer(tmp_path / "x.mcap", compression="gzip")
+
+
+def test_a_long_recording_keeps_under_1_kb_per_chunk_and_its_summary_indexes_every_chunk(tmp_path):
+    import tracemalloc
+
+    from mcap.reader import make_reader
+
+    path = tmp_path / "long.mcap"
+    w = McapRos2Writer(path, definition=lambda full: "int32 a\n")
+    channels = [w.add_channel(f"/t{k}", "std_msgs/msg/Int32") for k in range(45)]  # a fleet's worth of topics
+
+    def chunk(i):  # one message per topic, then a flush, as the recorder does every flush_period_s
+        for c in channels:
+            w.write(c, b"\x00\x01\x00\x00" + i.to_bytes(4, "little"), log_time_ns=i * 1000 + c)
+        w.flush()
+
+    for i in range(50):
+        chunk(i)
+    tracemalloc.start()
+    before = tracemalloc.get_traced_memory()[0]
+    for i in range(50, 1050):
+        chunk(i)
+    per_chunk = (tracemalloc.get_traced_memory()[0] - before) / 1000
+    tracemalloc.stop()
+    w.close()
+    assert per_chunk < 1024, f"{per_chunk:.0f} bytes kept per chunk"
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        chunks = summary.chunk_indexes
+        assert len(chunks) == 1050 and all(len(c.message_index_offsets) == 45 for c in chunks)
+        got = [(m.channel_id, m.log_time) for _, _, m in reader.iter_messages(start_time=500_000, end_time=501_000)]
+    assert got == [(c, 500_000 + c) for c in channels]  # the indexes still find messages by time
