@@ -58,7 +58,7 @@ class Fleet:
     """World + recorder + per robot a policy node and a drive executor, each a process."""
 
     def __init__(self, out: Path, domain: int, model: Path, n_robots: int = 3, world: dict | None = None,
-                 real_time_factor: float = 20.0, rate_hz: float = 10.0):
+                 real_time_factor: float = 20.0, rate_hz: float = 10.0, policy: dict | None = None):
         from mapf_world.fleet_launch import ProcessGroup, node_command
         self.node_command = node_command
         self.out = Path(out)
@@ -72,10 +72,11 @@ class Fleet:
                                  n_robots=n_robots, max_steps=12, action_timeout_s=1.0, ready_grace_s=1.0,
                                  summary_path=str(self.summary), linger_s=0.5, wait_for_recorder="recorder") | (world or {})
         self.drive_params = dict(real_time_factor=real_time_factor, rate_hz=rate_hz)
+        self.policy_params = dict(policy or {})  # beyond model_path, e.g. the action rule
 
     def policy_command(self, i: int):
         return self.node_command("mapf_policy", "policy_node", namespace=f"/robot_{i}",
-                                 params=dict(model_path=str(robot_model(self.model, self.out))))
+                                 params=dict(model_path=str(robot_model(self.model, self.out))) | self.policy_params)
 
     def start(self) -> "Fleet":
         g = self.group

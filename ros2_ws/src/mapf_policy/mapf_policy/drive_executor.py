@@ -5,6 +5,11 @@ latched: the simulated robot's start pose, sent by the world node).
 Publishes at a fixed rate: cmd_vel (geometry_msgs/Twist) and odom (nav_msgs/Odometry, the
 integration of the commanded twist; frame `frame_id`, child `<ns>/base_link`).
 
+Idle odometry (`idle_rate_hz`, simulated Hz; 0 = off, the default): while the robot stands still, odom and
+cmd_vel go out at this lower rate instead of rate_hz. The first standstill tick after a move is always sent
+(it is what tells the world the robot has settled), so nothing waits longer; a fleet of 64 robots, most
+standing on their goals, then sends a fraction of the messages (docs/FLEET.md, "64 robots").
+
 Time: the node keeps a simulated clock that advances one control period (1 / rate_hz) per tick;
 ticks run every 1 / (rate_hz * real_time_factor) wall seconds. Odometry stamps are that simulated
 clock and the velocities are the physical ones, so a run at real_time_factor 10 logs the same
@@ -51,6 +56,7 @@ class DriveExecutor(Node):
         self.declare_parameter("rate_hz", 20.0)
         self.declare_parameter("real_time_factor", 1.0)
         self.declare_parameter("frame_id", "map")
+        self.declare_parameter("idle_rate_hz", 0.0)
         self.robot_id = resolve_robot_id(self.get_parameter("robot_id").value, self.get_namespace())
         self.cell_size = positive(self, "cell_size")
         self.limits = DriveLimits(positive(self, "max_linear_speed"), positive(self, "max_angular_speed"))
@@ -58,6 +64,12 @@ class DriveExecutor(Node):
         self.rtf = positive(self, "real_time_factor")
         self.dt = 1.0 / rate
         self.frame_id = str(self.get_parameter("frame_id").value)
+        idle = self.get_parameter("idle_rate_hz").value
+        if isinstance(idle, bool) or not isinstance(idle, (int, float)) or not math.isfinite(idle) or idle < 0:
+            raise ValueError(f"parameter idle_rate_hz must be a number >= 0 (0: odometry at rate_hz always), got {idle!r}")
+        # Ticks between two idle publications (1: every tick).
+        self.idle_every = max(1, round(rate / idle)) if 0 < idle < rate else 1
+        self.idle_ticks = 0              # ticks since the last publication while standing still
         self.child_frame_id = f"{self.get_namespace().strip('/') or 'robot_%d' % self.robot_id}/base_link"
 
         self.pose = None                 # Pose2D once the initial pose is known
@@ -79,6 +91,7 @@ class DriveExecutor(Node):
         self.plan.clear()
         self.queue.clear()
         self.last_step = -1
+        self.idle_ticks = 0  # the next tick publishes the new pose
         cell = xy_to_cell(self.pose.x, self.pose.y, self.cell_size)
         self.get_logger().info(f"initial pose ({self.pose.x:.3f}, {self.pose.y:.3f}, {self.pose.yaw:.3f}) = cell {cell}")
 
@@ -114,7 +127,13 @@ class DriveExecutor(Node):
             return
         if not self.plan and self.queue:
             self._start_next_move()
+        moving = bool(self.plan)
         v, w = self.plan.popleft() if self.plan else (0.0, 0.0)
+        # Standing still: publish every idle_every-th tick only; a move's first standstill tick always goes out.
+        self.idle_ticks = 0 if moving else self.idle_ticks + 1
+        if not moving and self.idle_ticks != 1 and (self.idle_ticks - 1) % self.idle_every:
+            self.sim_ns += int(round(self.dt * 1e9))
+            return
         stamp = Time(nanoseconds=self.sim_ns).to_msg()
         odom = Odometry()
         odom.header.stamp = stamp

@@ -56,6 +56,9 @@ class DemoConfig:
     """How much faster than real time the drive executors run (stamps and speeds stay physical)."""
     rate_hz: float = 10.0
     """Control/odometry rate of the drive executors in simulated time."""
+    idle_rate_hz: float = 0.0
+    """Odometry rate of a robot standing still, in simulated time (0: rate_hz; the first standstill after a
+    move is always sent). Fewer messages for large fleets whose robots mostly wait."""
     cell_size: float = 0.3
     """Metres per cell."""
     action_timeout_s: float = 2.0
@@ -66,12 +69,18 @@ class DemoConfig:
     """Output directory (default runs/fleet/<time>)."""
     timeout_s: float = 300.0
     """Give up (and stop everything) after this many wall seconds."""
+    pictures: bool = True
+    """Draw fleet.png and fleet.gif from the log (--no-pictures: skip; the GIF of a long 64-robot run takes minutes)."""
 
 
 def parse_args(argv) -> DemoConfig:
     ap = argparse.ArgumentParser(prog="scripts/demo", description=__doc__.split("\n\n")[0])
     defaults = DemoConfig()
     for name, value in asdict(defaults).items():
+        if isinstance(value, bool):
+            ap.add_argument("--" + name.replace("_", "-"), default=value, action=argparse.BooleanOptionalAction,
+                            help=f"{_field_doc(name)} (default {value!r})")
+            continue
         ap.add_argument("--" + name.replace("_", "-"), type=type(value), default=value,
                         help=f"{_field_doc(name)} (default {value!r})")
     cfg = DemoConfig(**vars(ap.parse_args(argv)))
@@ -216,7 +225,8 @@ def run(cfg: DemoConfig) -> int:
     world_params = dict(max_steps=cfg.max_steps, cell_size=cfg.cell_size, action_timeout_s=cfg.action_timeout_s,
                         summary_path=str(summary_path), n_robots=cfg.robots, wait_for_recorder="recorder") \
         | world_instance_params(cfg)
-    drive_params = dict(cell_size=cfg.cell_size, real_time_factor=cfg.real_time_factor, rate_hz=cfg.rate_hz)
+    drive_params = dict(cell_size=cfg.cell_size, real_time_factor=cfg.real_time_factor, rate_hz=cfg.rate_hz,
+                        idle_rate_hz=cfg.idle_rate_hz)
     group = ProcessGroup(out / "logs", env)
     t0 = time.monotonic()
     print(f"demo: {cfg.robots} robots on {inst.name}, ROS_DOMAIN_ID {domain}, model {policy_params['model_path']}, "
@@ -253,7 +263,7 @@ def run(cfg: DemoConfig) -> int:
     from mapf_world.fleet_replay import load_run, render, timeline
     log = load_run(mcap)
     (out / "timeline.txt").write_text("\n".join(timeline(log)) + "\n")
-    pictures = render(log, out)
+    pictures = render(log, out) if cfg.pictures else []
 
     usage_lines = usage_report(served, before, after, t_end - t_run) if before else []
     walls = summary["step_wall_s"]

@@ -1,0 +1,48 @@
+"""The fleet runs the benchmark's policy: for the same case, model and action rule, the grid trajectory in the
+fleet's MCAP log equals the one `scripts/evaluate --trajectories` writes (3 robots, the paper's greedy rule,
+whose actions depend on nothing but the observations; the 64-robot check is documented in docs/FLEET.md)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from fleet_helpers import SMALL_MAP, SMALL_SCEN, Fleet
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.filterwarnings("ignore::DeprecationWarning")]
+
+MAX_STEPS = 12
+
+
+def test_fleet_trajectory_equals_the_evaluation_harness_s(tmp_path, domain_id, any_model):
+    from mapf_policy.action_selection import PAPER_RULE
+    from mapf_world.evaluate import main as evaluate
+    from mapf_world.fleet_core import load_fleet_instance
+    from mapf_world.fleet_replay import load_run
+    from mapf_world.instances import save_npz
+
+    case = tmp_path / "small.npz"
+    save_npz(case, [load_fleet_instance("map", map_file=str(SMALL_MAP), scen_file=str(SMALL_SCEN), n_robots=3)])
+    traj_file = tmp_path / "traj.npz"
+    assert evaluate(["--solver", "hscl", "--model", str(any_model), "--instances", str(case), "--action-rule", "paper",
+                     "--max-steps", str(MAX_STEPS), "--trajectories", str(traj_file)]) == 0
+    with np.load(traj_file) as traj:
+        steps = int(traj["steps"][0])
+        expected = traj["positions"][0][:steps + 1]
+
+    rule = {k: getattr(PAPER_RULE, k) for k in ("action_temperature", "backtrack_penalty", "mask_obstacle_moves")}
+    fleet = Fleet(tmp_path / "fleet", domain_id, any_model, policy=rule,
+                  world=dict(instance_source="npz", npz_file=str(case), npz_index=0, max_steps=MAX_STEPS))
+    fleet.start()
+    try:
+        code = fleet.wait_world(timeout=120)
+    finally:
+        fleet.stop()
+    summary = json.loads(fleet.summary.read_text())
+    assert code == 0 and summary["timeouts"] == 0, fleet.group.log_text("world")[-2000:]
+    logged = load_run(fleet.mcap).positions()
+    assert summary["steps"] == steps
+    assert logged.shape == expected.shape, (logged.shape, expected.shape)
+    np.testing.assert_array_equal(logged, expected)
+    assert steps >= 3 and (expected[-1] != expected[0]).any()  # the robots moved: the comparison means something
