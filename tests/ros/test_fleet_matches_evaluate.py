@@ -45,4 +45,6 @@ def test_fleet_trajectory_equals_the_evaluation_harness_s(tmp_path, domain_id, a
     assert summary["steps"] == steps
     assert logged.shape == expected.shape, (logged.shape, expected.shape)
     np.testing.assert_array_equal(logged, expected)
+    from mapf_world.fleet_check import main as check_fleet
+    assert check_fleet([str(fleet.mcap), str(traj_file)]) == 0  # the documented 64-robot check says the same
     assert steps >= 3 and (expected[-1] != expected[0]).any()  # the robots moved: the comparison means something

@@ -260,11 +260,6 @@ def run(cfg: DemoConfig) -> int:
         print(f"demo: warning: processes exited with errors: {bad} (logs in {out / 'logs'})", file=sys.stderr)
     summary = json.loads(summary_path.read_text())
 
-    from mapf_world.fleet_replay import load_run, render, timeline
-    log = load_run(mcap)
-    (out / "timeline.txt").write_text("\n".join(timeline(log)) + "\n")
-    pictures = render(log, out) if cfg.pictures else []
-
     usage_lines = usage_report(served, before, after, t_end - t_run) if before else []
     walls = summary["step_wall_s"]
     print(f"demo: {summary['state']}: {summary['detail']}")
@@ -280,6 +275,11 @@ def run(cfg: DemoConfig) -> int:
         print("  per robot process, during the run:" if not cfg.robots_per_process else
               "  per shared process (and its share per robot), during the run:")
         print("\n".join(usage_lines))
+    sys.stdout.flush()  # the figures first: reading a 64-robot log back takes minutes on a busy machine
+    from mapf_world.fleet_replay import load_run, render, timeline
+    log = load_run(mcap)
+    (out / "timeline.txt").write_text("\n".join(timeline(log)) + "\n")
+    pictures = render(log, out) if cfg.pictures else []
     print(f"  MCAP log   {mcap} ({log.counts.total()} messages)")
     for p in pictures:
         print(f"  picture    {p}")
