@@ -17,11 +17,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from mapf_world.fleet_drill import Drill, parse_ids
 from mapf_world.fleet_launch import ProcessGroup, executable, node_command, param_value
 
 
@@ -69,6 +71,13 @@ class DemoConfig:
     """Output directory (default runs/fleet/<time>)."""
     timeout_s: float = 300.0
     """Give up (and stop everything) after this many wall seconds."""
+    kill_policies: str = ""
+    """Fault drill: robot ids (e.g. 0,1,2,3) whose policy nodes run as their own processes, get SIGKILL after
+    --kill-after steps and are started again --restart-after steps later (mapf_world/fleet_drill.py)."""
+    kill_after: int = 20
+    """Fault drill: steps done before the SIGKILL."""
+    restart_after: int = 5
+    """Fault drill: steps done between the SIGKILL and the restart."""
     pictures: bool = True
     """Draw fleet.png and fleet.gif from the log (--no-pictures: skip; the GIF of a long 64-robot run takes minutes)."""
 
@@ -177,11 +186,23 @@ def wait_for_line(group: ProcessGroup, name: str, text: str, timeout: float) -> 
     return False
 
 
-def start_robots(group: ProcessGroup, cfg: DemoConfig, policy_params: dict, drive_params: dict) -> dict:
-    """Start every robot's policy node and drive executor; {process name: robot ids it serves}."""
-    served = {}
+def start_robots(group: ProcessGroup, cfg: DemoConfig, policy_params: dict, drive_params: dict,
+                 own_policy: list[int]) -> tuple[dict, dict]:
+    """Start every robot's policy node and drive executor; ({process name: robot ids it serves}, {robot: command
+    of its own policy process} for the robots of `own_policy`, which never share a policy process)."""
+    served, commands = {}, {}
+    for i in own_policy:
+        commands[i] = node_command("mapf_policy", "policy_node", namespace=f"/robot_{i}", params=policy_params)
+        group.start(f"policy_{i}", commands[i])
+        served[f"policy_{i}"] = [i]
     for ids in robot_chunks(cfg):
         if not cfg.robots_per_process:
+            if ids[0] in own_policy:
+                ns = f"/robot_{ids[0]}"
+                group.start(f"drive_{ids[0]}", node_command("mapf_policy", "drive_executor", namespace=ns,
+                                                            params=drive_params))
+                served[f"drive_{ids[0]}"] = ids
+                continue
             ns = f"/robot_{ids[0]}"
             group.start(f"drive_{ids[0]}", node_command("mapf_policy", "drive_executor", namespace=ns, params=drive_params))
             group.start(f"policy_{ids[0]}", node_command("mapf_policy", "policy_node", namespace=ns, params=policy_params))
@@ -189,12 +210,16 @@ def start_robots(group: ProcessGroup, cfg: DemoConfig, policy_params: dict, driv
             continue
         span = f"{ids[0]}-{ids[-1]}"
         for kind, params in (("drive", drive_params), ("policy", policy_params)):
-            cmd = [str(executable("mapf_policy", "robot_container")), "--robots", span, "--nodes", kind]
+            mine = ids if kind == "drive" else [i for i in ids if i not in own_policy]
+            if not mine:
+                continue
+            cmd = [str(executable("mapf_policy", "robot_container")), "--robots", ",".join(map(str, mine)),
+                   "--nodes", kind]
             for key, value in params.items():
                 cmd += [f"--{kind}-param", f"{key}:={param_value(value)}"]
             group.start(f"{kind}_{span}", cmd)
-            served[f"{kind}_{span}"] = ids
-    return served
+            served[f"{kind}_{span}"] = mine
+    return served, commands
 
 
 def run(cfg: DemoConfig) -> int:
@@ -210,6 +235,9 @@ def run(cfg: DemoConfig) -> int:
         from mapf_policy.policy_node import RULE_PARAMETERS
         rule = RULES[cfg.action_rule]
         policy_params = policy_model_params(model) | {k: getattr(rule, k) for k in RULE_PARAMETERS}
+        drilled = parse_ids(cfg.kill_policies)
+        if any(i >= cfg.robots for i in drilled):
+            raise ValueError(f"--kill-policies {cfg.kill_policies}: the run has robots 0..{cfg.robots - 1}")
     except (ValueError, OSError) as exc:
         print(f"demo: error: {exc}", file=sys.stderr)
         return 2
@@ -235,17 +263,23 @@ def run(cfg: DemoConfig) -> int:
     served = {}
     try:
         group.start("recorder", node_command("mapf_world", "recorder", params={"output": str(mcap)}))
-        served = start_robots(group, cfg, policy_params, drive_params)
+        served, commands = start_robots(group, cfg, policy_params, drive_params, drilled)
+        drill = Drill(group, drilled, commands, cfg.kill_after, cfg.restart_after)
         group.start("world", node_command("mapf_world", "world_node", params=world_params))
         before = {}
         if wait_for_line(group, "world", ": running", cfg.timeout_s):
             before = {name: group.usage(name) for name in served}
             t_run = time.monotonic()
-        try:
-            world_code = group.procs["world"].wait(timeout=max(1.0, cfg.timeout_s - (time.monotonic() - t0)))
-        except Exception:
+        world_code = None
+        while time.monotonic() - t0 < cfg.timeout_s:
+            drill.poll()
+            try:
+                world_code = group.procs["world"].wait(timeout=0.2)
+                break
+            except subprocess.TimeoutExpired:
+                continue
+        else:
             print(f"demo: error: the run did not end within {cfg.timeout_s} s; stopping", file=sys.stderr)
-            world_code = None
         after = {name: group.usage(name) for name in served}
         t_end = time.monotonic()
     finally:
@@ -275,9 +309,18 @@ def run(cfg: DemoConfig) -> int:
         print("  per robot process, during the run:" if not cfg.robots_per_process else
               "  per shared process (and its share per robot), during the run:")
         print("\n".join(usage_lines))
+    for event in drill.events:
+        print(f"  fault drill {event}")
     sys.stdout.flush()  # the figures first: reading a 64-robot log back takes minutes on a busy machine
     from mapf_world.fleet_replay import load_run, render, timeline
     log = load_run(mcap)
+    if drilled:
+        from mapf_world.fleet_check import failed_answers
+        by_robot: dict = {}
+        for step, robot, why in failed_answers(log.statuses):
+            by_robot.setdefault(robot, []).append(f"{step}{'' if why == 'timeout' else ' ' + why}")
+        print("  fault drill, robots without a valid action in the log (steps): "
+              + ("; ".join(f"robot {r}: {', '.join(v)}" for r, v in sorted(by_robot.items())) or "none"))
     (out / "timeline.txt").write_text("\n".join(timeline(log)) + "\n")
     pictures = render(log, out) if cfg.pictures else []
     print(f"  MCAP log   {mcap} ({log.counts.total()} messages)")
