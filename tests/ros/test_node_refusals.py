@@ -73,3 +73,18 @@ def test_node_refuses_to_start(results, case):
     expected = CASES[case][3]
     assert code == 2, f"exit status {code}, output:\n{text}"
     assert "refusing to start" in text and expected in text, text
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["--robots", "0-3,2", "--nodes", "policy"], "--robots must name each robot once"),
+    (["--robots", "0-1", "--nodes", "policy", "--policy-param", "backtrack_penalty:=-1.0"],
+     "backtrack_penalty must be a finite number >= 0"),
+    (["--robots", "0-1", "--nodes", "drive", "--drive-param", "idle_rate_hz:=-1.0"],
+     "idle_rate_hz must be a number >= 0"),
+])
+def test_robot_container_refuses_to_start(module_domain_id, args, expected):
+    from mapf_world.fleet_launch import executable
+    proc = subprocess.run([str(executable("mapf_policy", "robot_container"))] + args, env=env_for(module_domain_id),
+                          capture_output=True, text=True, timeout=90)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert "refusing to start" in proc.stderr and expected in proc.stderr, proc.stderr
