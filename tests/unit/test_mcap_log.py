@@ -145,5 +145,5 @@ def test_a_long_recording_keeps_under_1_kb_per_chunk_and_its_summary_indexes_eve
         summary = reader.get_summary()
         chunks = summary.chunk_indexes
         assert len(chunks) == 1050 and all(len(c.message_index_offsets) == 45 for c in chunks)
-        got = [(m.channel_id, m.log_time) for _, _, m in reader.iter_messages(start_time=500_000, end_time=501_000)]
+        got = [(m.channel_id, m.log_time) for _, _, m in reader.iter_messages(starting_at=500_000, ending_before=501_000)]
     assert got == [(c, 500_000 + c) for c in channels]  # the indexes still find messages by time
