@@ -66,10 +66,14 @@ def test_ladder_reports_a_rung_and_fails_an_untrained_model(repo_root, tmp_path)
     assert run.returncode == 0, run.stderr[-3000:]
     model = tmp_path / "runs" / "l" / "last.pt"
     out = subprocess.run([str(repo_root / "scripts" / "ladder"), str(model), "--rung", "1", "--cases", "5",
-                          "--json", str(tmp_path / "l.json"), "--no-progress"], capture_output=True, text=True, timeout=120)
+                          "--json", str(tmp_path / "l.json"), "--stuck", "--no-progress"], capture_output=True, text=True, timeout=120)
     rows = json.loads((tmp_path / "l.json").read_text())
     assert rows[0]["agents"] == 1 and rows[0]["map"] == 10 and rows[0]["cases"] == 5
     assert out.returncode == (0 if rows[0]["passed"] else 1) and "| 1 | 1 | 10x10 | 5 |" in out.stdout
+    if not rows[0]["passed"]:  # the stuck report counts what it saw in the failed cases
+        stuck = rows[0]["stuck"]
+        assert stuck["failed_cases"] == 5 - rows[0]["successes"] and "refused moves" in out.stdout
+        assert 0 <= stuck["refused_is_argmax"] <= stuck["refused"] and stuck["label_is_refused_move"] <= stuck["labelled"]
     missing = subprocess.run([str(repo_root / "scripts" / "ladder"), str(tmp_path / "nope.pt")], capture_output=True,
                              text=True, timeout=60)
     assert missing.returncode == 2 and "does not exist" in missing.stderr

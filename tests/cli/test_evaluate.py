@@ -186,7 +186,7 @@ def test_cli_hscl_sampling_options_are_recorded_and_checked(repo_root, tmp_path)
         reports.append(json.loads(out.read_text()))
     assert reports[0]["settings"] == {"model": str(model), "action_temperature": 0.5, "backtrack_penalty": 0.05,
                                       "mask_obstacle_moves": True, "settled_greedy": True, "goal_stay_bonus": 0.0,
-                                      "seed": 4}
+                                      "seed": 4, "last_action": "requested"}
     # Same seed: the same actions, so the same per-case steps and costs.
     strip = [[{k: v for k, v in c.items() if k != "seconds"} for c in r["files"][0]["results"]] for r in reports]
     assert strip[0] == strip[1]
@@ -200,7 +200,7 @@ def test_cli_hscl_sampling_options_are_recorded_and_checked(repo_root, tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert json.loads(paper.read_text())["settings"] == {
         "model": str(model), "action_temperature": 0.0, "backtrack_penalty": 0.2, "mask_obstacle_moves": False,
-        "settled_greedy": True, "goal_stay_bonus": 0.0, "seed": 0}
+        "settled_greedy": True, "goal_stay_bonus": 0.0, "seed": 0, "last_action": "requested"}
     unknown = subprocess.run([script, "--solver", "hscl", "--model", str(model), "--action-rule", "greedy",
                               "--instances", str(fixture)], capture_output=True, text=True, timeout=120)
     assert unknown.returncode == 2 and "unknown action rule 'greedy'" in unknown.stderr

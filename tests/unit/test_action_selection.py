@@ -126,7 +126,10 @@ def test_hscl_solver_settings_and_repeatable_cases(tmp_path):
     sampled = make_hscl(model=str(path), action_temperature=0.5, seed=11)
     assert sampled.settings == {"model": str(path), "action_temperature": 0.5, "backtrack_penalty": 0.05,
                                 "mask_obstacle_moves": True, "settled_greedy": True, "goal_stay_bonus": 0.0,
-                                "seed": 11}
+                                "seed": 11, "last_action": "requested"}
+    # A model of the second design carries its last-action mode to the harness.
+    executed = save_model(tmp_path / "e.pt", QNetwork(cfg), cfg, {"steps": 0, "last_action": "executed"})
+    assert make_hscl(model=str(executed)).last_action == "executed"
     # The generator restarts at each case: running a case twice gives the same trajectory.
     first = run_case(sampled, inst, 20).positions
     assert np.array_equal(first, run_case(sampled, inst, 20).positions)

@@ -83,6 +83,33 @@ def test_td_error_uses_the_n_step_return_and_discount():
     assert td.item() == pytest.approx(-0.5 + 0.81 * 2.0 - 1.0)
 
 
+def test_infeasible_labels_lead_into_a_cell_another_agent_holds():
+    from mapf_policy.train.dqn_hscl import infeasible_labels
+
+    # agent 0 at (1,0) labelled right into (1,1), where agent 1 stays; agent 1 labelled stay; agent 2 moves
+    # right into (0,1), which agent 3 leaves (following is feasible); agent 4 unlabelled.
+    pos = np.array([[[1, 0], [1, 1], [0, 0], [0, 1], [3, 3]],
+                    [[1, 0], [1, 1], [0, 1], [0, 2], [3, 3]]])
+    expert = np.array([[4, 0, 4, 4, -1]])
+    assert infeasible_labels(pos, expert).tolist() == [[True, False, False, False, False]]
+    steps = _steps([[-0.5, 0.0, -0.075, -0.075, 0.0]], n_agents=5)
+    steps["obs"][0]["position"], steps["obs"][1]["position"] = pos[0].astype(np.float32), pos[1].astype(np.float32)
+    steps["expert"] = [expert[0]]
+    assert episode_rows(steps, False, 0.9, 1, feasible_labels=True)["expert"].tolist() == [-1, 0, 4, 4, -1]
+    assert episode_rows(steps, False, 0.9, 1)["expert"].tolist() == [4, 0, 4, 4, -1]
+
+
+def test_monte_carlo_lower_bound_only_on_solved_rows():
+    q = torch.zeros(2, 5)
+    batch = {"action": torch.tensor([1, 1]), "ret": torch.tensor([-0.5, -0.5]), "boot_gamma": torch.tensor([0.5, 0.5]),
+             "expert": torch.tensor([-1, -1]), "mc_return": torch.tensor([2.0, 2.0]), "solved": torch.tensor([True, False])}
+    next_q = torch.full((2, 5), -1.0)
+    _, _, td = losses(q, next_q, batch, Args(mc_lower_bound=True))
+    assert td.tolist() == pytest.approx([2.0, -1.0])
+    _, _, td = losses(q, next_q, batch, Args())
+    assert td.tolist() == pytest.approx([-1.0, -1.0])
+
+
 def test_executed_last_action_is_stay_after_a_refused_move():
     grid = np.zeros((3, 3), np.uint8)
     starts, goals = np.array([[1, 0], [1, 1]]), np.array([[1, 1], [1, 0]])
@@ -117,3 +144,25 @@ def test_bad_stages_and_args_are_named(text, msg):
     with pytest.raises(ValueError, match="last_action"):
         Args(last_action="both").validate()
     assert parse_stage("16x40") == (16, 40)
+
+
+def test_the_harness_builds_observations_with_the_solvers_last_action_mode():
+    from mapf_world.evaluate import run_case
+    from mapf_world.instances import Instance
+
+    class Pusher:  # both agents push into each other (a head-on swap, refused), recording what they see
+        def __init__(self, mode):
+            self.last_action, self.seen = mode, []
+
+        def reset(self, env):
+            pass
+
+        def act(self, obs):
+            self.seen.append(obs["last_action"].argmax(axis=1).tolist())
+            return np.array([4, 3])
+
+    inst = Instance(np.zeros((3, 3), np.uint8), np.array([[1, 0], [1, 1]]), np.array([[1, 1], [1, 0]]))
+    for mode, second in (("executed", [STAY, STAY]), ("requested", [4, 3])):
+        solver = Pusher(mode)
+        run_case(solver, inst, 3)
+        assert solver.seen[1] == second

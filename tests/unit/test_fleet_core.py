@@ -189,11 +189,12 @@ def test_robot_id_from_namespace_and_parameter():
         resolve_robot_id(-3, "/robot_2")
 
 
-def test_last_actions_are_the_requested_ones_as_in_mapf_env():
+@pytest.mark.parametrize("mode,expected", [("requested", [DOWN, RIGHT]), ("executed", [0, RIGHT])])
+def test_last_actions_follow_mapf_env_in_either_mode(mode, expected):
     from mapf_world.env import MapfEnv
     starts, goals = np.array([(0, 1), (2, 1)]), np.array([(0, 3), (2, 3)])
-    core = make(starts, goals)
-    env = MapfEnv(GRID, starts, goals)
+    core = FleetCore(GRID, starts, goals, 64, last_action=mode)
+    env = MapfEnv(GRID, starts, goals, last_action=mode)
     env.reset()
     core.begin_step()
     core.offer_action(0, 0, 0, DOWN)   # fails: obstacle
@@ -201,8 +202,10 @@ def test_last_actions_are_the_requested_ones_as_in_mapf_env():
     core.close_step()
     core.settle()
     env.step([DOWN, RIGHT])
-    assert core.last_actions.tolist() == env.last_actions.tolist() == [DOWN, RIGHT]
+    assert core.last_actions.tolist() == env.last_actions.tolist() == expected
     assert core.positions.tolist() == env.positions.tolist()
+    with pytest.raises(ValueError, match="last_action"):
+        FleetCore(GRID, starts, goals, 64, last_action="planned")
 
 
 def test_deadline_holds_on_ticks_and_gives_grace_after_a_stall_of_its_process():

@@ -37,8 +37,11 @@ class HsclSolver:
         self.name = name
         self.policy = policy
         self.seed = seed
+        # The observation's last action the model was trained with (MapfEnv's last_action; models before the
+        # second design: "requested"); the harness builds its MapfEnv with it.
+        self.last_action = policy.meta.get("last_action", "requested")
         # What decides the results, for the evaluation report (options left at their defaults included).
-        self.settings = {"model": str(model_path), **policy.rule.asdict(), "seed": seed}
+        self.settings = {"model": str(model_path), **policy.rule.asdict(), "seed": seed, "last_action": self.last_action}
 
     def reset(self, env) -> None:
         fov = env.fov_size

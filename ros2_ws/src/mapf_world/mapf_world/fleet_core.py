@@ -133,7 +133,7 @@ class FleetCore:
     """The grid state of the fleet and the per-step protocol (pure; the node feeds it messages)."""
 
     def __init__(self, grid, starts, goals, max_steps: int,
-                 resolve: Optional[Callable] = None):
+                 resolve: Optional[Callable] = None, last_action: str = "requested"):
         self.grid = check_grid(grid)
         self.starts = check_cells(self.grid, starts, what="starts")
         self.goals = check_cells(self.grid, goals, what="goals")
@@ -141,6 +141,10 @@ class FleetCore:
             raise ValueError(f"{len(self.starts)} starts but {len(self.goals)} goals")
         if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
             raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
+        from mapf_world.env import LAST_ACTION_MODES
+        if last_action not in LAST_ACTION_MODES:
+            raise ValueError(f"last_action must be one of {LAST_ACTION_MODES}, got {last_action!r}")
+        self.last_action_mode = last_action
         if resolve is None:
             from mapf_world.rules import resolve_moves as resolve
         self._resolve = resolve
@@ -249,9 +253,10 @@ class FleetCore:
         moves = self._pending
         self._pending = None
         self.positions = moves.to_cells.copy()
-        # As in MapfEnv (the training environment): the last action is the one asked for, even when
-        # the rules failed it; a robot without a valid action counts as having asked to stay.
-        self.last_actions = moves.requested.copy()
+        # As in MapfEnv (the training environment), by the model's last_action mode: "requested", the action
+        # asked for even when the rules failed it; "executed", the approved one (stay when failed). A robot
+        # without a valid action counts as having asked to stay.
+        self.last_actions = (moves.actions if self.last_action_mode == "executed" else moves.requested).copy()
         self.moves.append(moves)
         self.history.append(self.positions.copy())
         self.step += 1

@@ -138,6 +138,13 @@ def check_instance(cfg: DemoConfig):
     return load_fleet_instance(params.pop("instance_source"), n_robots=cfg.robots, **params)
 
 
+def export_last_action(export: Path) -> str:
+    """The observation's last-action mode the exported model was trained with (its metadata; older models:
+    'requested'); the world node builds the robots' observations with it."""
+    from mapf_policy.runtime_net import read_export
+    return read_export(export)[0]["meta"].get("last_action", "requested")
+
+
 def policy_model_params(model: Path) -> dict:
     """policy_node parameters for `model`: an exported .npz as is; a .pt through its export (same path, .npz),
     which must exist and come from this very file (source_sha256); ValueError saying how to make it."""
@@ -251,7 +258,8 @@ def run(cfg: DemoConfig) -> int:
     mcap, summary_path = out / "fleet.mcap", out / "summary.json"
 
     world_params = dict(max_steps=cfg.max_steps, cell_size=cfg.cell_size, action_timeout_s=cfg.action_timeout_s,
-                        summary_path=str(summary_path), n_robots=cfg.robots, wait_for_recorder="recorder") \
+                        summary_path=str(summary_path), n_robots=cfg.robots, wait_for_recorder="recorder",
+                        last_action=export_last_action(Path(policy_params["model_path"]))) \
         | world_instance_params(cfg)
     drive_params = dict(cell_size=cfg.cell_size, real_time_factor=cfg.real_time_factor, rate_hz=cfg.rate_hz,
                         idle_rate_hz=cfg.idle_rate_hz)

@@ -60,7 +60,7 @@ class WorldNode(Node):
             p["instance_source"], map_file=p["map_file"], scen_file=p["scen_file"], npz_file=p["npz_file"],
             npz_index=p["npz_index"], seed=p["seed"], size=p["size"], density=p["density"], n_robots=p["n_robots"])
         self.instance = inst
-        self.core = FleetCore(inst.grid, inst.starts, inst.goals, p["max_steps"])
+        self.core = FleetCore(inst.grid, inst.starts, inst.goals, p["max_steps"], last_action=p["last_action"])
         self.builder = ObservationBuilder(inst.grid, inst.goals, fov_size=p["fov_size"])
         self.n = self.core.n
         self.cell_size = p["cell_size"]
@@ -113,6 +113,7 @@ class WorldNode(Node):
             lockstep_drive=True, max_angular_speed=1.57,
             robot_namespace_prefix="robot_", frame_id="map",
             summary_path="", marker_period_s=0.2, linger_s=1.0, ready_grace_s=1.0, wait_for_recorder="",
+            last_action="requested",
         )
         p = {k: self.declare_parameter(k, v).value for k, v in defaults.items()}
         if p["instance_source"] not in INSTANCE_SOURCES:

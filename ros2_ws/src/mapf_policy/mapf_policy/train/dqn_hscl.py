@@ -49,6 +49,7 @@ from mapf_policy.train.demos import ACTOR_STREAM, VALID_STREAM, generated_cases,
 from mapf_policy.train.expert import ExpertFailed, make_oracle
 from mapf_policy.train.log import CsvLog, read_csv, truncate_log
 from mapf_world.env import LAST_ACTION_MODES, MapfEnv
+from mapf_world.grid import DELTAS
 from mapf_world.instances import generate_instance
 
 
@@ -90,6 +91,11 @@ class Args:
     """Initial weight of the HSCL term (steered when dqn_share > 0)."""
     dqn_share: float = 0.4
     """Target share of the DQN term in the update's gradient norm, |g_dqn| / (|g_dqn| + |g_hscl|); 0: fixed weights."""
+    mc_lower_bound: bool = False
+    """Beyond the paper: DQN target max(n-step target, the Monte Carlo return) on rows of solved episodes."""
+    feasible_labels: bool = False
+    """Beyond the paper: no HSCL label on a row whose labelled move leads into a cell another agent holds after
+    the step (the joint plan expected it to move; infeasible_labels)."""
     tau_h: float = 0.1
     """Hot-vector offset of Table I."""
     temperature: float = 0.1
@@ -189,7 +195,7 @@ ROW_SPECS = {  # one agent's n-step transition; fov values are 0/1
     "fov": (np.uint8, (6, 9, 9)), "last_action": (np.int8, ()), "position": (np.int16, (2,)),
     "action": (np.int8, ()), "ret": (np.float32, ()), "boot_gamma": (np.float32, ()),
     "next_fov": (np.uint8, (6, 9, 9)), "next_last_action": (np.int8, ()), "next_position": (np.int16, (2,)),
-    "expert": (np.int8, ()), "mc_return": (np.float32, ()), "refused": (np.bool_, ()),
+    "expert": (np.int8, ()), "mc_return": (np.float32, ()), "refused": (np.bool_, ()), "solved": (np.bool_, ()),
 }
 
 
@@ -231,7 +237,20 @@ def play_episode(forward, env: MapfEnv, epsilon: float, rng, oracle=None, budget
     return steps, {**stats, "terminated": bool(terminated)}
 
 
-def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int) -> dict:
+def infeasible_labels(positions: np.ndarray, expert: np.ndarray) -> np.ndarray:
+    """(T, N) bool: the expert's move leads into a cell that another agent holds after the step.
+
+    positions (T + 1, N, 2) as played, expert (T, N) labels (-1: none). The joint plan behind a label expects
+    the others to move as planned; where one of them stood still or took that cell, the labelled move would
+    have been refused. Such a label teaches the push that deadlocks a greedy team (issue 20, finding 3)."""
+    t_len = len(expert)
+    target = positions[:-1] + DELTAS[np.clip(expert, 0, 4)]  # (T, N, 2)
+    hit = np.all(target[:, :, None, :] == positions[1:, None, :, :], axis=3)  # (T, N, N): i's target = j's cell
+    hit[:, np.arange(hit.shape[1]), np.arange(hit.shape[1])] = False
+    return (expert > 0) & hit.any(axis=2) if t_len else np.zeros((0, positions.shape[1]), bool)
+
+
+def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasible_labels: bool = False) -> dict:
     """Replay rows of every agent and step: n-step return, bootstrap state and discount, Monte Carlo return.
 
     Row (t, i): ret = sum_{k<m} gamma^k r[t+k, i] with m = min(n, T - t); bootstrap from obs[t + m] with
@@ -255,14 +274,18 @@ def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int) -> di
     last = np.stack([o["last_action"].argmax(axis=1) for o in obs]).astype(np.int8)
     pos = np.stack([o["position"] for o in obs]).astype(np.int16)
     nxt = np.arange(t_len) + m
+    expert = np.stack(steps["expert"]).astype(np.int8)
+    if feasible_labels:
+        expert = np.where(infeasible_labels(pos.astype(np.int64), expert.astype(np.int64)), -1, expert).astype(np.int8)
     flat = lambda a: a.reshape((t_len * n_agents,) + a.shape[2:])  # noqa: E731 (row order: step-major)
     return {
         "fov": flat(fov[:-1]), "last_action": flat(last[:-1]), "position": flat(pos[:-1]),
         "action": flat(np.stack(steps["action"]).astype(np.int8)), "ret": flat(ret.astype(np.float32)),
         "boot_gamma": flat(np.repeat(boot_gamma[:, None], n_agents, 1).astype(np.float32)),
         "next_fov": flat(fov[nxt]), "next_last_action": flat(last[nxt]), "next_position": flat(pos[nxt]),
-        "expert": flat(np.stack(steps["expert"]).astype(np.int8)), "mc_return": flat(mc.astype(np.float32)),
+        "expert": flat(expert), "mc_return": flat(mc.astype(np.float32)),
         "refused": flat(np.stack(steps["failed"]).astype(bool)),
+        "solved": np.full(t_len * n_agents, bool(terminated)),  # mc_return is a whole episode's return
     }
 
 
@@ -286,7 +309,7 @@ class Replay:
         idx = rng.integers(0, self.size, n)
         eye = torch.eye(5)
         b = {k: torch.from_numpy(v[idx]) for k, v in self.data.items()}
-        t = {"action": b["action"].long(), "expert": b["expert"].long(), "refused": b["refused"]}
+        t = {"action": b["action"].long(), "expert": b["expert"].long(), "refused": b["refused"], "solved": b["solved"]}
         for k in ("ret", "boot_gamma", "mc_return"):
             t[k] = b[k]
         for pre in ("", "next_"):
@@ -301,6 +324,11 @@ def losses(q: torch.Tensor, next_q_target: torch.Tensor, batch: dict, args: Args
     """(DQN term, HSCL term, TD errors): Huber on the n-step TD error; HSCL on the advantage (dueling) or on Q."""
     q_taken = q.gather(1, batch["action"][:, None]).squeeze(1)
     target = batch["ret"] + batch["boot_gamma"] * next_q_target.max(dim=1).values
+    if args.mc_lower_bound:
+        # Beyond the paper: the return a solved episode actually got from (s, a) is a lower bound on Q*(s, a),
+        # so the team reward reaches early states without waiting for target syncs (the bound of
+        # "optimality tightening" and self-imitation learning). Unsolved episodes' returns are cut off: no bound.
+        target = torch.where(batch["solved"], torch.maximum(target, batch["mc_return"]), target)
     td = target - q_taken
     l_dqn = F.huber_loss(q_taken, target, delta=args.huber_delta)
     labelled = batch["expert"] >= 0
@@ -389,7 +417,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                 oracle = make_oracle(args.expert, env.grid, env.goals, env.dist, args.expert_epsilon,
                                      min(args.expert_time_limit, args.relabel_time_budget))
             steps, stats = play_episode(act_q, env, eps_at(state["step"]), rng, oracle, args.relabel_time_budget, drive)
-            rows = episode_rows(steps, stats["terminated"], args.gamma, args.n_step)
+            rows = episode_rows(steps, stats["terminated"], args.gamma, args.n_step, args.feasible_labels)
             replay.add(rows)
             state["episodes"] += 1
             window["rows"] += len(rows["action"])
@@ -646,7 +674,8 @@ def main(argv=None) -> int:
     if saved.is_file():
         old = json.loads(saved.read_text())
         schedule = {"total_steps", "session_minutes", "eval_every", "log_every", "checkpoint_minutes", "publish_dir", "threads"}
-        differ = sorted(k for k, v in _plain(args).items() if k not in schedule and old.get(k) != v)
+        defaults = _plain(Args())  # a field added after the run started has its default there
+        differ = sorted(k for k, v in _plain(args).items() if k not in schedule and old.get(k, defaults[k]) != v)
         if differ:
             print(f"error: run {run_dir} exists with other values of {differ}; resume without them or pick another "
                   f"--run-name", file=sys.stderr)

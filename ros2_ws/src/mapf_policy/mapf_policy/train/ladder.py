@@ -64,6 +64,44 @@ def run_rung(path, rung: int, cases: int, seed: int = 0, density: float = 0.3, m
     return rows
 
 
+def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, density: float = 0.3,
+                 max_steps: int = 256) -> dict:
+    """Where greedy failures stand at their last step: agents whose move was refused, whether that move is
+    their argmax, its lead over the runner-up, and whether ODrM* (bound 10, 2 s) labels that same move.
+
+    A refused move repeated at a fixed point (the same observation each step) is a greedy deadlock."""
+    from mapf_policy.train.expert import ExpertFailed, make_oracle
+
+    net, _, meta = load_model(path)
+    forward, mode = InferenceNet(net), model_last_action(meta)
+    out = {"failed_cases": 0, "refused": 0, "refused_is_argmax": 0, "label_is_refused_move": 0, "labelled": 0,
+           "lead": []}
+    for inst in generated_cases(seed, COMPARE_STREAM, [agents], cases, side, density):
+        env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode)
+        steps, stats = play_episode(forward, env, 0.0, np.random.default_rng(0))
+        if stats["success"]:
+            continue
+        out["failed_cases"] += 1
+        obs, action, refused = steps["obs"][-2], steps["action"][-1], steps["failed"][-1]
+        with torch.inference_mode():
+            q = forward(*(torch.from_numpy(obs[k]) for k in ("fov", "last_action", "position"))).numpy()
+        try:
+            before = np.stack([o["position"] for o in steps["obs"]])[-2].astype(np.int64)
+            label = make_oracle("odrmstar", env.grid, env.goals, env.dist, 10.0, 2.0).actions(before)
+        except ExpertFailed:
+            label = None
+        for i in np.flatnonzero(refused):
+            top = np.sort(q[i])
+            out["refused"] += 1
+            out["refused_is_argmax"] += int(q[i].argmax() == action[i])
+            out["lead"].append(float(top[-1] - top[-2]))
+            if label is not None:
+                out["labelled"] += 1
+                out["label_is_refused_move"] += int(label[i] == action[i])
+    out["median_lead"] = float(np.median(out.pop("lead"))) if out["refused"] else float("nan")
+    return out
+
+
 def markdown(model: str, rows: list[dict]) -> str:
     lines = [f"model `{model}`, greedy argmax, held-out cases (seed stream {COMPARE_STREAM}), last action: {rows[0]['last_action']}",
              "", "| rung | agents | map | cases | success | average step | bar | passed |", "|---|---|---|---|---|---|---|---|"]
@@ -80,6 +118,8 @@ def main(argv=None) -> int:
     p.add_argument("--cases", type=int, default=100, help="cases per team size (default 100)")
     p.add_argument("--seed", type=int, default=0, help="seed of the held-out cases (default 0)")
     p.add_argument("--json", help="also write the rows here")
+    p.add_argument("--stuck", action="store_true",
+                   help="also report, for each rung's failed cases, the refused moves at the last step (stuck_report)")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     if args.cases < 1:
@@ -92,6 +132,15 @@ def main(argv=None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(markdown(args.model, rows))
+    if args.stuck:
+        for r in rows:
+            if not r["passed"]:
+                rep = stuck_report(args.model, r["agents"], r["map"], args.cases, args.seed)
+                r["stuck"] = rep
+                print(f"\n{r['agents']} agents, {r['map']}x{r['map']}: at the last step of {rep['failed_cases']} failed cases, "
+                      f"{rep['refused']} refused moves; the refused move is the argmax in {rep['refused_is_argmax']} "
+                      f"(median lead {rep['median_lead']:.3f}); ODrM* labels it in {rep['label_is_refused_move']} of "
+                      f"{rep['labelled']} labelled")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0 if all(r["passed"] for r in rows) else 1
