@@ -1,6 +1,8 @@
-"""The fleet runs the benchmark's policy: for the same case, model and action rule, the grid trajectory in the
-fleet's MCAP log equals the one `scripts/evaluate --trajectories` writes (3 robots, the paper's greedy rule,
-whose actions depend on nothing but the observations; the 64-robot check is documented in docs/FLEET.md)."""
+"""The fleet runs the benchmark's policy: for the same case, model, action rule and seeds, the grid trajectory in
+the fleet's MCAP log equals the one `scripts/evaluate --trajectories` writes (3 robots): the paper's greedy rule,
+whose actions depend on nothing but the observations, and the shipped sampled rule, where the harness gives agent
+i its own generator seeded with i (--per-agent-seeds) as each robot's node seeds its own with its id. The
+64-robot check is documented in docs/FLEET.md."""
 from __future__ import annotations
 
 import json
@@ -15,7 +17,8 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.filterwarnings("ign
 MAX_STEPS = 12
 
 
-def test_fleet_trajectory_equals_the_evaluation_harness_s(tmp_path, domain_id, any_model):
+@pytest.mark.parametrize("rule_name", ["paper", "default"])
+def test_fleet_trajectory_equals_the_evaluation_harness_s(tmp_path, domain_id, any_model, rule_name):
     from mapf_policy.action_selection import PAPER_RULE
     from mapf_world.evaluate import main as evaluate
     from mapf_world.fleet_core import load_fleet_instance
@@ -25,13 +28,16 @@ def test_fleet_trajectory_equals_the_evaluation_harness_s(tmp_path, domain_id, a
     case = tmp_path / "small.npz"
     save_npz(case, [load_fleet_instance("map", map_file=str(SMALL_MAP), scen_file=str(SMALL_SCEN), n_robots=3)])
     traj_file = tmp_path / "traj.npz"
-    assert evaluate(["--solver", "hscl", "--model", str(any_model), "--instances", str(case), "--action-rule", "paper",
-                     "--max-steps", str(MAX_STEPS), "--trajectories", str(traj_file)]) == 0
+    seeds = ["--per-agent-seeds"] if rule_name == "default" else []
+    assert evaluate(["--solver", "hscl", "--model", str(any_model), "--instances", str(case), "--action-rule", rule_name,
+                     "--max-steps", str(MAX_STEPS), "--trajectories", str(traj_file), *seeds]) == 0
     with np.load(traj_file) as traj:
         steps = int(traj["steps"][0])
         expected = traj["positions"][0][:steps + 1]
 
-    rule = {k: getattr(PAPER_RULE, k) for k in ("action_temperature", "backtrack_penalty", "mask_obstacle_moves")}
+    # The default rule is the policy node's default too (and its seed -1: the robot id).
+    rule = ({k: getattr(PAPER_RULE, k) for k in ("action_temperature", "backtrack_penalty", "mask_obstacle_moves")}
+            if rule_name == "paper" else {})
     fleet = Fleet(tmp_path / "fleet", domain_id, any_model, policy=rule,
                   world=dict(instance_source="npz", npz_file=str(case), npz_index=0, max_steps=MAX_STEPS))
     fleet.start()

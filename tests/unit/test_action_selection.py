@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from mapf_policy.action_selection import (PAPER_RULE, ActionRule, backtrack_moves, check_action_temperature, make_rule,
-                                          obstacle_moves, select_actions, settled)
+from mapf_policy.action_selection import (PAPER_RULE, ActionChooser, ActionRule, backtrack_moves,
+                                          check_action_temperature, make_rule, obstacle_moves, select_actions, settled)
 from mapf_policy.config import NetworkConfig
 from mapf_policy.model_io import save_model
 from mapf_policy.network import QNetwork
@@ -249,3 +249,21 @@ def test_goal_stay_bonus_holds_agents_on_their_goal_only(tmp_path):
     assert (free[on] != 0).any()
     with pytest.raises(ValueError, match="goal_stay_bonus must be a finite number >= 0"):
         ActionRule(goal_stay_bonus=-0.1)
+
+
+def test_per_agent_seeds_draw_what_one_robot_per_generator_draws():
+    """Row i of a team chooser with per_agent_seeds samples exactly as a one-row chooser seeded with seed + i
+    (robot i's policy node, seed -1 = its id), step after step."""
+    rng = np.random.default_rng(3)
+    rule = ActionRule(action_temperature=0.5, backtrack_penalty=0.0, mask_obstacle_moves=False)
+    team = ActionChooser(rule, 0, per_agent_seeds=True)
+    robots = [ActionChooser(rule, i) for i in range(4)]
+    fov = np.zeros((4, 6, 9, 9))
+    for _ in range(6):
+        q = rng.normal(size=(4, 5))
+        pos = rng.integers(0, 9, (4, 2))
+        together = team.choose(q, fov, pos)
+        alone = [robots[i].choose(q[i:i + 1], fov[i:i + 1], pos[i:i + 1])[0] for i in range(4)]
+        assert together.tolist() == alone
+    with pytest.raises(ValueError, match="per_agent_seeds"):
+        ActionChooser(rule, None, per_agent_seeds=True)

@@ -209,17 +209,35 @@ def backtrack_moves(position: np.ndarray, previous: np.ndarray) -> np.ndarray:
     return out
 
 
+class RowGenerators:
+    """One generator per row, row i seeded with seed + i, drawing like one generator would for a batch:
+    `gumbel(size=(B, A))` stacks row i's own (A,) draw. A team evaluated this way draws what a fleet draws,
+    where robot i's policy node has its own generator seeded with its id (policy_node seed -1)."""
+
+    def __init__(self, seed: int):
+        self.seed, self.rows = seed, []
+
+    def gumbel(self, size) -> np.ndarray:
+        batch, width = size
+        while len(self.rows) < batch:
+            self.rows.append(np.random.default_rng(self.seed + len(self.rows)))
+        return np.stack([self.rows[i].gumbel(size=width) for i in range(batch)])
+
+
 class ActionChooser:
     """One ActionRule applied to Q-values, with the state the rule needs: its own sampling generator and each
     row's previous cell. Rows are agents, in a fixed order during an episode; `reset` starts a new one.
-    Numpy only: the torch Policy (policy.py) and the robot's RuntimePolicy (runtime_policy.py) share it."""
+    Numpy only: the torch Policy (policy.py) and the robot's RuntimePolicy (runtime_policy.py) share it.
+    `per_agent_seeds`: row i samples from its own generator, seeded with seed + i (RowGenerators), so that a
+    team's draws equal those of a fleet whose robots each seed their own generator with their id."""
 
-    def __init__(self, rule: ActionRule | None = None, seed: int | None = 0):
+    def __init__(self, rule: ActionRule | None = None, seed: int | None = 0, per_agent_seeds: bool = False):
         if rule is None:
             rule = ActionRule()
         if not isinstance(rule, ActionRule):
             raise ValueError(f"rule must be an ActionRule, got {type(rule).__name__}")
         self.rule = rule
+        self.per_agent_seeds = bool(per_agent_seeds)
         self.reset(seed)
 
     def reset(self, seed: int | None) -> None:
@@ -227,7 +245,9 @@ class ActionChooser:
         row's previous cell."""
         if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
             raise ValueError(f"seed must be an integer >= 0 or None, got {seed!r}")
-        self.rng = np.random.default_rng(seed)
+        if self.per_agent_seeds and seed is None:
+            raise ValueError("per_agent_seeds needs an integer seed (row i uses seed + i)")
+        self.rng = RowGenerators(seed) if self.per_agent_seeds else np.random.default_rng(seed)
         self.previous = None  # (B, 2) cells of the last choose() call
 
     def choose(self, q: np.ndarray, fov: np.ndarray, position: np.ndarray) -> np.ndarray:

@@ -27,7 +27,7 @@ class Policy:
     """Wraps a QNetwork for inference. `model` is a model file path or a QNetwork."""
 
     def __init__(self, model, num_threads: int | None = 1, device: str = "cpu",
-                 rule: ActionRule | None = None, seed: int | None = 0):
+                 rule: ActionRule | None = None, seed: int | None = 0, per_agent_seeds: bool = False):
         if isinstance(model, QNetwork):
             self.net, self.cfg, self.meta = model, model.cfg, {}
         elif isinstance(model, (str, Path)):
@@ -43,7 +43,8 @@ class Policy:
         self.net = self.net.to(self.device).eval()
         # On CPU, the same function computed faster (inference.py); elsewhere the network itself.
         self.forward = InferenceNet(self.net) if self.device.type == "cpu" else self.net
-        self.chooser = ActionChooser(rule, seed)  # the rule, its generator and each row's previous cell
+        # the rule, its generator(s) and each row's previous cell
+        self.chooser = ActionChooser(rule, seed, per_agent_seeds)
         self.rule = self.chooser.rule
 
     @property

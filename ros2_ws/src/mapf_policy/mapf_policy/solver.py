@@ -41,7 +41,8 @@ class HsclSolver:
         # second design: "requested"); the harness builds its MapfEnv with it.
         self.last_action = policy.meta.get("last_action", "requested")
         # What decides the results, for the evaluation report (options left at their defaults included).
-        self.settings = {"model": str(model_path), **policy.rule.asdict(), "seed": seed, "last_action": self.last_action}
+        self.settings = {"model": str(model_path), **policy.rule.asdict(), "seed": seed, "last_action": self.last_action,
+                         **({"per_agent_seeds": True} if policy.chooser.per_agent_seeds else {})}
 
     def reset(self, env) -> None:
         fov = env.fov_size
@@ -54,7 +55,7 @@ class HsclSolver:
 
 
 # action_rule: a named rule ("default" or "paper"), whose fields the other rule options then replace.
-OPTIONS = ("num_threads", "seed", "action_rule") + RULE_FIELDS
+OPTIONS = ("num_threads", "seed", "action_rule", "per_agent_seeds") + RULE_FIELDS
 
 
 def _check_options(name: str, options: dict) -> None:
@@ -77,7 +78,8 @@ def _load(name: str, model, expected: dict, options: dict) -> HsclSolver:
         rule = make_rule(options.get("action_rule", "default"), **{k: options[k] for k in RULE_FIELDS if k in options})
     except ValueError as exc:
         raise ValueError(f"solver {name}: {exc}") from exc
-    policy = Policy(path, num_threads=int(options.get("num_threads", 1)), rule=rule, seed=int(seed))
+    policy = Policy(path, num_threads=int(options.get("num_threads", 1)), rule=rule, seed=int(seed),
+                    per_agent_seeds=bool(options.get("per_agent_seeds", False)))
     wrong = {k: getattr(policy.cfg, k) for k, v in expected.items() if getattr(policy.cfg, k) != v}
     if wrong:
         raise ValueError(f"solver {name}: model {path} has {wrong}, but this variant needs {expected}")
@@ -89,7 +91,8 @@ def make_hscl(model=None, **options) -> HsclSolver:
 
     Options: action_rule ("default", or "paper": greedy argmax and nothing else), and any ActionRule field
     to replace (action_temperature, backtrack_penalty, mask_obstacle_moves, settled_greedy, goal_stay_bonus);
-    seed (of the per-case sampling generator, default 0); num_threads (torch, default 1).
+    seed (of the per-case sampling generator, default 0); per_agent_seeds (agent i samples from its own generator
+    seeded with seed + i, as robot i of a fleet does with policy_node seed -1); num_threads (torch, default 1).
     """
     full = {k: getattr(NetworkConfig(), k) for k in ("self_attention", "channel_attention", "spatial_attention")}
     return _load("hscl", model, full, options)

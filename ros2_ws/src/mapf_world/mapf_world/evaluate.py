@@ -185,6 +185,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="solver option (learned policies): never choose a move into an obstacle or off the map")
     p.add_argument("--seed", type=int, default=None, metavar="S",
                    help="solver option (learned policies): seed of the action sampling, restarted at each case")
+    p.add_argument("--per-agent-seeds", action="store_true",
+                   help="solver option (learned policies): agent i samples from its own generator seeded with seed + i, "
+                        "as robot i of the fleet does (policy_node seed -1), so a sampled run equals the fleet's")
     args = p.parse_args(argv)
     if args.cases is not None and args.cases < 1:
         p.error(f"--cases must be >= 1, got {args.cases}")
@@ -202,7 +205,8 @@ def main(argv=None) -> int:
     options = {k: v for k, v in (("epsilon", args.epsilon), ("time_limit", args.time_limit), ("model", args.model),
                                  ("action_rule", args.action_rule), ("action_temperature", args.action_temperature),
                                  ("backtrack_penalty", args.backtrack_penalty),
-                                 ("mask_obstacle_moves", args.mask_obstacle_moves), ("seed", args.seed))
+                                 ("mask_obstacle_moves", args.mask_obstacle_moves), ("seed", args.seed),
+                                 ("per_agent_seeds", args.per_agent_seeds or None))
                if v is not None}
     try:
         solver = get_solver(args.solver, **options)
