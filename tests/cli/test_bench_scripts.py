@@ -30,3 +30,13 @@ def test_bench_learner_times_both_ways(repo_root):
     rows = re.findall(r"(fast|reference) +forward: median ([\d.]+) ms per gradient step", proc.stdout)
     assert sorted(name for name, _ in rows) == ["fast", "reference"]
     assert all(float(ms) > 0 for _, ms in rows)
+
+
+def test_bench_bf16_times_both_precisions_for_both_forwards(repo_root):
+    proc = _run(repo_root, "bench_bf16", "--batches", "4", "--steps", "1", "--rounds", "1")
+    assert proc.returncode == 0, proc.stderr
+    rows = re.findall(r"\| 4 \| (QNetwork.forward|FastForward) \| ([\d.]+) \| ([\d.]+) \| ([\d.]+)x \|", proc.stdout)
+    assert sorted(r[0] for r in rows) == ["FastForward", "QNetwork.forward"]
+    assert all(float(a) > 0 and float(b) > 0 for _, a, b, _ in rows)
+    bad = _run(repo_root, "bench_bf16", "--steps", "0")
+    assert bad.returncode != 0 and "must be >= 1" in bad.stderr

@@ -362,9 +362,9 @@ def greedy_success(forward, cases: list, last_action: str, max_steps: int) -> tu
 
 
 TRAIN_COLUMNS = ("step", "stage", "episodes", "l_dqn", "l_hscl", "hscl_weight", "dqn_share", "td_abs", "td_refused",
-                 "refused_rows", "q_mean", "mc_return_mean", "q_return_corr", "agreement", "train_success",
-                 "train_steps", "mean_team", "samples_per_s", "learner_steps_per_s", "env_rows_per_s", "epsilon",
-                 "elapsed_s")
+                 "refused_minus_stay", "refused_rows", "q_mean", "mc_return_mean", "q_return_corr", "agreement",
+                 "train_success", "train_steps", "mean_team", "samples_per_s", "learner_steps_per_s", "env_rows_per_s",
+                 "epsilon", "elapsed_s")
 EVAL_COLUMNS = ("step", "stage", "agents", "size", "success_rate", "average_step")
 
 
@@ -455,6 +455,11 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                     m["refused_rows"].append(int(ref.sum()))
                     if ref.any():
                         m["td_refused"].append(float(td[ref].abs().mean()))
+                        # A refused move leads where staying leads (executed last action), at -0.5 instead of
+                        # -0.075: learned values put it 0.425 below staying.
+                        qd = q.detach()[ref]
+                        m["refused_minus_stay"].append(float((qd.gather(1, batch["action"][ref][:, None]).squeeze(1)
+                                                              - qd[:, 0]).mean()))
                     m["q_mean"].append(float(q_taken.mean()))
                     m["mc_return_mean"].append(float(batch["mc_return"].mean()))
                     m["q_return_corr"].append(correlation(q_taken, batch["mc_return"]))
@@ -508,6 +513,7 @@ def _log_row(args: Args, state: dict, window: dict, session_t0: float, epsilon: 
     return {"step": state["step"], "stage": args.stages[state["stage"]], "episodes": state["episodes"],
             "l_dqn": mean("l_dqn"), "l_hscl": mean("l_hscl"), "hscl_weight": state["hscl_weight"],
             "dqn_share": mean("dqn_share"), "td_abs": mean("td_abs"), "td_refused": mean("td_refused"),
+            "refused_minus_stay": mean("refused_minus_stay"),
             "refused_rows": int(sum(window["m"]["refused_rows"])), "q_mean": mean("q_mean"),
             "mc_return_mean": mean("mc_return_mean"), "q_return_corr": mean("q_return_corr"), "agreement": mean("agreement"),
             "train_success": float(np.mean([e["success"] for e in eps if not e["expert_drove"]] or [np.nan])),
@@ -597,6 +603,9 @@ def plot_run(run_dir: Path) -> Path | None:
     ax[0, 1].set_title("gradient share"), ax[0, 1].legend(fontsize=7)
     ax[0, 2].plot(s, log["td_abs"], lw=1, label="|TD| all rows")
     ax[0, 2].plot(s, log["td_refused"], lw=1, label="|TD| refused-move rows")
+    if "refused_minus_stay" in log:
+        ax[0, 2].plot(s, log["refused_minus_stay"], lw=1, label="Q(refused move) - Q(stay)")
+        ax[0, 2].axhline(-0.425, color="grey", lw=0.8, ls=":")
     ax[0, 2].set_title("TD error"), ax[0, 2].legend(fontsize=7)
     ax[0, 3].plot(s, log["q_mean"], lw=1, label="mean Q(s,a)")
     ax[0, 3].plot(s, log["mc_return_mean"], lw=1, label="mean MC return")
