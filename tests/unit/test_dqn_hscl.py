@@ -143,6 +143,8 @@ def test_bad_stages_and_args_are_named(text, msg):
         Args(dqn_share=1.0).validate()
     with pytest.raises(ValueError, match="last_action"):
         Args(last_action="both").validate()
+    with pytest.raises(ValueError, match="greedy_fraction"):
+        Args(greedy_fraction=1.5).validate()
     assert parse_stage("16x40") == (16, 40)
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import rclpy
 from rclpy.node import Node
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from mapf_world.mcap_log import McapRos2Writer
@@ -61,6 +62,10 @@ def offered_profile(qos: QoSProfile) -> QosProfile:
                       avoid_ros_namespace_conventions=bool(qos.avoid_ros_namespace_conventions))
 
 
+# Seconds a subscription may match no publisher, while the graph shows some, before it is made anew.
+UNMATCHED_S = 2.0
+
+
 class Recorder(Node):
     def __init__(self):
         super().__init__("recorder")
@@ -84,6 +89,9 @@ class Recorder(Node):
             raise ValueError(f"discovery_period_s and flush_period_s must be > 0, got {discovery}, {flush}")
         self.writer = McapRos2Writer(Path(output), compression=str(self.get_parameter("compression").value))
         self._subs = {}
+        self._channels = {}   # topic -> MCAP channel id (kept when a subscription is made anew)
+        self._matched = {}    # topic -> publishers matched by its subscription (the middleware's matched event)
+        self._created = {}    # topic -> monotonic time its subscription was made
         self._refused = set()
         self.sequences = SequenceTracker()
         self.create_timer(discovery, self._discover)
@@ -92,7 +100,22 @@ class Recorder(Node):
                                f"({'topics ' + ', '.join(sorted(self._only)) if self._only else 'every topic'})")
         self._discover()
 
+    def _resubscribe_unmatched(self) -> None:
+        """A subscription that has matched no publisher for UNMATCHED_S while the graph shows publishers of its
+        topic is made anew (into the same channel). Seen once in a fresh-clone test run: a robot's odom and
+        cmd_vel were subscribed to and never delivered one message, while every other topic was recorded."""
+        now = time.monotonic()
+        for topic in list(self._subs):
+            if self._matched.get(topic, 0) > 0 or now - self._created[topic] < UNMATCHED_S:
+                continue
+            if self.count_publishers(topic) == 0:
+                continue
+            self.get_logger().warning(f"{topic}: no publisher matched in {UNMATCHED_S:g} s although the graph "
+                                      f"shows {self.count_publishers(topic)}; subscribing again")
+            self.destroy_subscription(self._subs.pop(topic))
+
     def _discover(self) -> None:
+        self._resubscribe_unmatched()
         for topic, types in self.get_topic_names_and_types():
             if topic in self._subs or topic in self._refused or self._exclude.search(topic):
                 continue
@@ -107,22 +130,30 @@ class Recorder(Node):
                 continue
             try:
                 cls = message_class(types[0])
-                cid = self.writer.add_channel(topic, types[0], [offered_profile(p.qos_profile) for p in publishers],
-                                              type_hash=str(getattr(publishers[0], "topic_type_hash", "") or ""))
+                if topic not in self._channels:
+                    self._channels[topic] = self.writer.add_channel(
+                        topic, types[0], [offered_profile(p.qos_profile) for p in publishers],
+                        type_hash=str(getattr(publishers[0], "topic_type_hash", "") or ""))
+                    if len(publishers) == 1:
+                        self.sequences.track(topic)
             except ValueError as exc:
                 self.get_logger().error(f"topic {topic} not recorded: {exc}")
                 self._refused.add(topic)
                 continue
-
-            if len(publishers) == 1:
-                self.sequences.track(topic)
+            cid = self._channels[topic]
 
             def on_message(data, info, cid=cid, topic=topic):
                 self.writer.write(cid, data, log_time_ns=time.time_ns(),
                                   publish_time_ns=info.get("source_timestamp") or None)
                 self.sequences.received(topic, info.get("publication_sequence_number"))
 
-            self._subs[topic] = self.create_subscription(cls, topic, on_message, recorder_qos(publishers), raw=True)
+            def on_matched(status, topic=topic):
+                self._matched[topic] = status.current_count
+
+            self._matched[topic], self._created[topic] = 0, time.monotonic()
+            self._subs[topic] = self.create_subscription(
+                cls, topic, on_message, recorder_qos(publishers), raw=True,
+                event_callbacks=SubscriptionEventCallbacks(matched=on_matched))
             self.get_logger().info(f"recording {topic} [{types[0]}]")
 
     def close(self) -> None:

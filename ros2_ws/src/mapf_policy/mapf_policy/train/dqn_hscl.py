@@ -116,6 +116,9 @@ class Args:
     """Share of policy-driven episodes whose visited states get ODrM* labels for HSCL."""
     expert_drive_fraction: float = 0.1
     """Share of episodes in which the agents execute the expert's actions (with epsilon noise)."""
+    greedy_fraction: float = 0.0
+    """Share of the policy-driven episodes played without exploration (epsilon 0), so that the states where a
+    greedy team deadlocks, which epsilon-greedy play leaves within a step, enter the replay."""
     expert: str = "odrmstar"
     """'odrmstar' (the paper's) or 'shortest_path' (a stand-in for tests)."""
     expert_epsilon: float = 10.0
@@ -160,8 +163,8 @@ class Args:
         for name in ("total_steps", "batch_size", "n_step", "target_update_every", "replay_capacity",
                      "max_episode_steps", "eval_cases", "log_every", "threads"):
             need(int(getattr(self, name)) >= 1, f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("eps_start", "eps_end", "relabel_fraction", "expert_drive_fraction", "advance_pass_rate",
-                     "review_fraction", "dqn_share"):
+        for name in ("eps_start", "eps_end", "relabel_fraction", "expert_drive_fraction", "greedy_fraction",
+                     "advance_pass_rate", "review_fraction", "dqn_share"):
             need(0.0 <= getattr(self, name) <= 1.0, f"{name} must lie in [0, 1], got {getattr(self, name)}")
         need(self.dqn_share < 1.0, "dqn_share must be < 1")
         need(0.0 < self.gamma <= 1.0, f"gamma must lie in (0, 1], got {self.gamma}")
@@ -416,7 +419,9 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             if drive or ep_rng.random() < args.relabel_fraction:
                 oracle = make_oracle(args.expert, env.grid, env.goals, env.dist, args.expert_epsilon,
                                      min(args.expert_time_limit, args.relabel_time_budget))
-            steps, stats = play_episode(act_q, env, eps_at(state["step"]), rng, oracle, args.relabel_time_budget, drive)
+            greedy = not drive and ep_rng.random() < args.greedy_fraction
+            epsilon = 0.0 if greedy else eps_at(state["step"])
+            steps, stats = play_episode(act_q, env, epsilon, rng, oracle, args.relabel_time_budget, drive)
             rows = episode_rows(steps, stats["terminated"], args.gamma, args.n_step, args.feasible_labels)
             replay.add(rows)
             state["episodes"] += 1
