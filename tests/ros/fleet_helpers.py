@@ -5,33 +5,20 @@ Domain ids are claimed with lock files in 100..229, so tests of concurrent sessi
 """
 from __future__ import annotations
 
-import fcntl
 import os
 import signal
 import time
 from pathlib import Path
 
+from mapf_world.fleet_launch import claim_domain_id  # noqa: F401 (the tests' fixtures claim through it)
+
 REPO_ROOT = Path(__file__).resolve().parents[2]
 TRAINED_MODEL = REPO_ROOT / "models" / "hscl.pt"
 DATA = Path(__file__).resolve().parent / "data"
-LOCK_DIR = Path("/tmp/mapf_ros_domain_locks")
 
 # Robots of the small test map: rows 0, 2 and 4 are free corridors, so each robot has a direct path.
 SMALL_MAP = DATA / "fleet_small.map"
 SMALL_SCEN = DATA / "fleet_small.scen"
-
-
-def claim_domain_id():
-    LOCK_DIR.mkdir(exist_ok=True)
-    for domain in range(100, 230):
-        f = open(LOCK_DIR / f"{domain}.lock", "w")
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            f.close()
-            continue
-        return domain, f
-    raise RuntimeError("no free ROS_DOMAIN_ID in 100..229")
 
 
 def env_for(domain: int) -> dict:

@@ -119,22 +119,6 @@ def first_actions(cmd: list, robots: list[int], domain: int, log: Path) -> tuple
         rclpy.try_shutdown(context=context)
 
 
-def claim_domain():
-    """(ROS_DOMAIN_ID, lock file) not used by any other run on this machine: the lock files of the ROS tests
-    (tests/ros/fleet_helpers.py, /tmp/mapf_ros_domain_locks, ids 100..229), so answers come from our nodes only."""
-    import fcntl
-    lock_dir = Path("/tmp/mapf_ros_domain_locks")
-    lock_dir.mkdir(exist_ok=True)
-    for domain in range(229, 99, -1):
-        f = open(lock_dir / f"{domain}.lock", "w")
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            return domain, f
-        except BlockingIOError:
-            f.close()
-    raise RuntimeError("no free ROS_DOMAIN_ID in 100..229")
-
-
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="scripts/bench_runtime", description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", type=Path, default=Path("models/hscl.pt"), help="the torch model; its export is "
@@ -145,7 +129,7 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     from mapf_policy.export import default_export_path, episode_observations
     from mapf_policy.runtime_policy import RuntimePolicy
-    from mapf_world.fleet_launch import executable, node_command
+    from mapf_world.fleet_launch import claim_domain_id, executable, node_command
     export = default_export_path(args.model)
     cores = os.sched_getaffinity(0)
     os.sched_setaffinity(0, {sorted(cores)[0]})  # one core for the action timings
@@ -164,7 +148,7 @@ def main(argv=None) -> None:
     for name in [r[0] for r in rows]:
         elapsed, rss = fresh_process(name, export if name == "numpy" else args.model)
         print(f"{name:5s} fresh process, spawn -> first action: {elapsed:.2f} s, RSS {rss:.0f} MB", flush=True)
-    domain, _lock = claim_domain()
+    domain, _lock = claim_domain_id(from_top=True)
     logs = Path(os.environ.get("TMPDIR", "/tmp"))
     elapsed, rss = first_actions(node_command("mapf_policy", "policy_node", namespace="/robot_0",
                                               params=dict(model_path=str(export.resolve()))), [0], domain,

@@ -132,14 +132,6 @@ class QNetwork(nn.Module):
         value, adv = self.value_fc(hidden), self.q_fc(hidden)
         return value + adv - adv.mean(dim=1, keepdim=True)
 
-    def value_advantage(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor) -> tuple:
-        """(V (B,), A (B, 5)) of a dueling network, A zero-mean per row so that Q = V + A; for the losses."""
-        if self.value_fc is None:
-            raise ValueError("value_advantage needs a dueling network (NetworkConfig.dueling)")
-        q = self.forward(fov, last_action, position)
-        value = q.mean(dim=1)
-        return value, q - value[:, None]
-
 
 def count_parameters(net: nn.Module) -> int:
     return sum(p.numel() for p in net.parameters())

@@ -138,20 +138,15 @@ def check_instance(cfg: DemoConfig):
     return load_fleet_instance(params.pop("instance_source"), n_robots=cfg.robots, **params)
 
 
-def export_last_action(export: Path) -> str:
-    """The observation's last-action mode the exported model was trained with (its metadata; older models:
-    'requested'); the world node builds the robots' observations with it."""
-    from mapf_policy.runtime_net import read_export
-    return read_export(export)[0]["meta"].get("last_action", "requested")
-
-
-def policy_model_params(model: Path) -> dict:
-    """policy_node parameters for `model`: an exported .npz as is; a .pt through its export (same path, .npz),
-    which must exist and come from this very file (source_sha256); ValueError saying how to make it."""
+def policy_model_params(model: Path) -> tuple[dict, str]:
+    """(policy_node parameters, the model's last-action mode) for `model`: an exported .npz as is; a .pt through
+    its export (same path, .npz), which must exist and come from this very file (source_sha256); ValueError
+    saying how to make it. The last-action mode (the export's metadata; older models: 'requested') is how the
+    world node must build the robots' observations."""
     from mapf_policy.runtime_net import file_sha256, read_export
     if model.suffix == ".npz":
-        read_export(model)
-        return dict(model_path=str(model))
+        header, _ = read_export(model)
+        return dict(model_path=str(model)), header["meta"].get("last_action", "requested")
     export = model.with_suffix(".npz")
     if not export.is_file():
         raise ValueError(f"the robots run the export of {model}, and {export} does not exist: "
@@ -162,7 +157,7 @@ def policy_model_params(model: Path) -> dict:
         raise ValueError(f"{export} was not exported from {model} (its source SHA-256 is "
                          f"{str(header['source'].get('sha256'))[:12]}..., the model's {sha[:12]}...): "
                          f"scripts/export_model {model}")
-    return dict(model_path=str(export), source_sha256=sha)
+    return dict(model_path=str(export), source_sha256=sha), header["meta"].get("last_action", "requested")
 
 
 def robot_chunks(cfg: DemoConfig) -> list[list[int]]:
@@ -241,7 +236,8 @@ def run(cfg: DemoConfig) -> int:
         from mapf_policy.action_selection import RULES
         from mapf_policy.policy_node import RULE_PARAMETERS
         rule = RULES[cfg.action_rule]
-        policy_params = policy_model_params(model) | {k: getattr(rule, k) for k in RULE_PARAMETERS}
+        model_params, last_action = policy_model_params(model)
+        policy_params = model_params | {k: getattr(rule, k) for k in RULE_PARAMETERS}
         drilled = parse_ids(cfg.kill_policies)
         if any(i >= cfg.robots for i in drilled):
             raise ValueError(f"--kill-policies {cfg.kill_policies}: the run has robots 0..{cfg.robots - 1}")
@@ -259,7 +255,7 @@ def run(cfg: DemoConfig) -> int:
 
     world_params = dict(max_steps=cfg.max_steps, cell_size=cfg.cell_size, action_timeout_s=cfg.action_timeout_s,
                         summary_path=str(summary_path), n_robots=cfg.robots, wait_for_recorder="recorder",
-                        last_action=export_last_action(Path(policy_params["model_path"]))) \
+                        last_action=last_action) \
         | world_instance_params(cfg)
     drive_params = dict(cell_size=cfg.cell_size, real_time_factor=cfg.real_time_factor, rate_hz=cfg.rate_hz,
                         idle_rate_hz=cfg.idle_rate_hz)

@@ -9,6 +9,7 @@ memory from /proc.
 """
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import signal
@@ -19,6 +20,25 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 import yaml
+
+# ROS_DOMAIN_ID claims shared by the ROS tests and the fleet benchmarks on one machine: a lock file per id, so
+# concurrent runs never share a domain and every answer comes from the run's own nodes.
+DOMAIN_LOCK_DIR = Path("/tmp/mapf_ros_domain_locks")
+DOMAIN_IDS = range(100, 230)
+
+
+def claim_domain_id(from_top: bool = False):
+    """(a free ROS_DOMAIN_ID in 100..229, its open lock file: keep it open while the id is in use). The tests
+    claim from the bottom, the benchmarks `from_top`, so that the two rarely contend."""
+    DOMAIN_LOCK_DIR.mkdir(exist_ok=True)
+    for domain in (reversed(DOMAIN_IDS) if from_top else DOMAIN_IDS):
+        f = open(DOMAIN_LOCK_DIR / f"{domain}.lock", "w")
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return domain, f
+        except BlockingIOError:
+            f.close()
+    raise RuntimeError(f"no free ROS_DOMAIN_ID in {DOMAIN_IDS.start}..{DOMAIN_IDS.stop - 1}")
 
 
 def executable(package: str, name: str) -> Path:

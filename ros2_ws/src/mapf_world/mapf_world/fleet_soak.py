@@ -11,7 +11,6 @@ Usage: scripts/bench_soak [--robots 8] [--steps 10000] [--out DIR] [...]
 from __future__ import annotations
 
 import argparse
-import fcntl
 import json
 import os
 import re
@@ -21,9 +20,8 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from mapf_world.fleet_launch import ProcessGroup, node_command
+from mapf_world.fleet_launch import ProcessGroup, claim_domain_id, node_command
 
-LOCK_DIR = Path("/tmp/mapf_ros_domain_locks")  # the same claims as the ROS tests: no shared domain ids
 
 
 @dataclass
@@ -42,18 +40,6 @@ class SoakConfig:
     out: str = ""
 
 
-def claim_domain():
-    LOCK_DIR.mkdir(exist_ok=True)
-    for domain in range(229, 99, -1):
-        f = open(LOCK_DIR / f"{domain}.lock", "w")
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            return domain, f
-        except BlockingIOError:
-            f.close()
-    raise RuntimeError("no free ROS_DOMAIN_ID in 100..229")
-
-
 def usage_row(group: ProcessGroup, name: str):
     u = group.usage(name)
     return None if u is None else {"cpu_s": u.cpu_s, "rss_mb": u.rss_mb, "t": time.monotonic()}
@@ -66,7 +52,7 @@ def run(cfg: SoakConfig, progress=None) -> dict:
                                                else root / "models" / "hscl.pt")
     out = Path(cfg.out or f"runs/soak/{time.strftime('%Y%m%d-%H%M%S')}")
     (out / "episodes").mkdir(parents=True, exist_ok=True)
-    domain, lock = claim_domain()
+    domain, lock = claim_domain_id(from_top=True)
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     group = ProcessGroup(out / "logs", env)

@@ -24,7 +24,7 @@ from tqdm import tqdm
 from mapf_policy.inference import InferenceNet
 from mapf_policy.model_io import load_model
 from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
-from mapf_policy.train.dqn_hscl import play_episode
+from mapf_policy.train.dqn_hscl import greedy_outcomes, play_episode
 from mapf_world.env import MapfEnv
 
 # rung -> (what, [(agents, map side, success bar)])
@@ -51,11 +51,9 @@ def run_rung(path, rung: int, cases: int, seed: int = 0, density: float = 0.3, m
     rows = []
     for agents, side, bar in RUNGS[rung][1]:
         insts = generated_cases(seed, COMPARE_STREAM, [agents], cases, side, density)
-        t0, outcomes = time.perf_counter(), []
-        for inst in tqdm(insts, desc=f"rung {rung}: {agents} agents, {side}x{side}", unit="case", disable=not progress):
-            env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode)
-            _, stats = play_episode(forward, env, 0.0, np.random.default_rng(0))
-            outcomes.append((stats["success"], stats["steps"] if stats["success"] else max_steps))
+        t0 = time.perf_counter()
+        outcomes = greedy_outcomes(forward, tqdm(insts, desc=f"rung {rung}: {agents} agents, {side}x{side}", unit="case",
+                                                 disable=not progress), mode, max_steps)
         success = float(np.mean([s for s, _ in outcomes]))
         rows.append({"rung": rung, "agents": agents, "map": side, "cases": cases, "success_rate": success,
                      "successes": int(sum(s for s, _ in outcomes)),
