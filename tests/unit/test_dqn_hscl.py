@@ -168,3 +168,16 @@ def test_the_harness_builds_observations_with_the_solvers_last_action_mode():
         solver = Pusher(mode)
         run_case(solver, inst, 3)
         assert solver.seen[1] == second
+
+
+def test_a_resumed_log_gets_the_columns_added_since(tmp_path):
+    from mapf_policy.train.dqn_hscl import add_log_columns
+
+    log = tmp_path / "train.csv"
+    log.write_text("step,loss\n100,0.5\n200,0.4\n")
+    add_log_columns(log, ("step", "new", "loss"))
+    assert log.read_text().splitlines() == ["step,new,loss", "100,,0.5", "200,,0.4"]
+    other = tmp_path / "other.csv"
+    other.write_text("step,gone\n1,2\n")
+    add_log_columns(other, ("step", "new"))  # not a subset: left alone (CsvLog refuses it)
+    assert other.read_text() == "step,gone\n1,2\n"

@@ -150,6 +150,9 @@ def test_sequence_tracker_counts_gaps_and_publisher_restarts():
     assert (t.topics["/b"].published, t.topics["/b"].lost, t.topics["/b"].writers) == (4, 0, 2)
     assert t.published == 11 and t.lost == 2
     assert t.report() == "11 published, 9 received, 2 lost on 2 single-publisher topics (most on /a 2)"
+    t.untrack("/a")                      # a second publisher joined: its numbers would interleave
+    t.received("/a", 20)
+    assert "/a" not in t.topics and t.lost == 0
 
 
 def test_recover_carries_an_older_log_whose_qos_lists_four_fields(tmp_path):

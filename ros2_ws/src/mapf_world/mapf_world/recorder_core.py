@@ -32,6 +32,10 @@ class SequenceTracker:
     def track(self, topic: str) -> None:
         self.topics.setdefault(topic, TopicSequence())
 
+    def untrack(self, topic: str) -> None:
+        """Stop accounting a topic that has gained a second publisher (its numberings would interleave)."""
+        self.topics.pop(topic, None)
+
     def received(self, topic: str, sequence: Optional[int]) -> None:
         t = self.topics.get(topic)
         if t is None or sequence is None:  # not accounted, or the middleware does not number samples

@@ -91,7 +91,7 @@ class Recorder(Node):
         self._subs = {}
         self._channels = {}   # topic -> MCAP channel id (kept when a subscription is made anew)
         self._matched = {}    # topic -> publishers matched by its subscription (the middleware's matched event)
-        self._created = {}    # topic -> monotonic time its subscription was made
+        self._waiting = {}    # topic -> since when the graph shows publishers its subscription has not matched
         self._refused = set()
         self.sequences = SequenceTracker()
         self.create_timer(discovery, self._discover)
@@ -106,12 +106,18 @@ class Recorder(Node):
         cmd_vel were subscribed to and never delivered one message, while every other topic was recorded."""
         now = time.monotonic()
         for topic in list(self._subs):
-            if self._matched.get(topic, 0) > 0 or now - self._created[topic] < UNMATCHED_S:
+            publishers = self.count_publishers(topic)
+            if publishers > 1:
+                self.sequences.untrack(topic)  # several numberings interleave from now on: no loss account
+            if self._matched.get(topic, 0) > 0 or publishers == 0:
+                self._waiting.pop(topic, None)
                 continue
-            if self.count_publishers(topic) == 0:
+            since = self._waiting.setdefault(topic, now)
+            if now - since < UNMATCHED_S:
                 continue
             self.get_logger().warning(f"{topic}: no publisher matched in {UNMATCHED_S:g} s although the graph "
-                                      f"shows {self.count_publishers(topic)}; subscribing again")
+                                      f"shows {publishers}; subscribing again")
+            self._waiting.pop(topic)
             self.destroy_subscription(self._subs.pop(topic))
 
     def _discover(self) -> None:
@@ -150,7 +156,7 @@ class Recorder(Node):
             def on_matched(status, topic=topic):
                 self._matched[topic] = status.current_count
 
-            self._matched[topic], self._created[topic] = 0, time.monotonic()
+            self._matched[topic] = 0
             self._subs[topic] = self.create_subscription(
                 cls, topic, on_message, recorder_qos(publishers), raw=True,
                 event_callbacks=SubscriptionEventCallbacks(matched=on_matched))

@@ -235,9 +235,8 @@ def play_episode(forward, env: MapfEnv, epsilon: float, rng, oracle=None, budget
         for k, v in (("obs", obs), ("action", actions), ("reward", reward), ("expert", expert), ("failed", info["failed"])):
             steps[k].append(v)
         done = terminated or truncated
-    stats = {"success": bool(terminated), "steps": env.step_count, "n_agents": env.n_agents, "labelled": labelled,
-             "oracle_s": spent, "expert_drove": expert_drives and labelled > 0}
-    return steps, {**stats, "terminated": bool(terminated)}
+    return steps, {"success": bool(terminated), "steps": env.step_count, "n_agents": env.n_agents,
+                   "labelled": labelled, "oracle_s": spent, "expert_drove": expert_drives and labelled > 0}
 
 
 def infeasible_labels(positions: np.ndarray, expert: np.ndarray) -> np.ndarray:
@@ -354,13 +353,19 @@ def correlation(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a * b).sum()) / den if den > 0 else float("nan")
 
 
-def greedy_success(forward, cases: list, last_action: str, max_steps: int) -> tuple[float, float]:
-    """Success rate and average step (a failure counts max_steps) with argmax Q and no exploration."""
+def greedy_outcomes(forward, cases, last_action: str, max_steps: int) -> list[tuple[bool, int]]:
+    """(success, steps) per case with argmax Q and no exploration; a failure counts max_steps."""
     outcomes = []
     for inst in cases:
         env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=last_action)
         _, stats = play_episode(forward, env, 0.0, np.random.default_rng(0))
         outcomes.append((stats["success"], stats["steps"] if stats["success"] else max_steps))
+    return outcomes
+
+
+def greedy_success(forward, cases: list, last_action: str, max_steps: int) -> tuple[float, float]:
+    """Success rate and average step of greedy_outcomes."""
+    outcomes = greedy_outcomes(forward, cases, last_action, max_steps)
     return float(np.mean([s for s, _ in outcomes])), float(np.mean([t for _, t in outcomes]))
 
 
@@ -390,6 +395,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
         target.load_state_dict(net.state_dict())
     truncate_log(run_dir / "train.csv", state["step"])
     truncate_log(run_dir / "eval.csv", state["step"])
+    add_log_columns(run_dir / "train.csv", TRAIN_COLUMNS)
     online_q, target_q, act_q = FastForward(net), InferenceNet(target), InferenceNet(net)
     params = [p for p in net.parameters()]
     replay = Replay(args.replay_capacity)
@@ -422,7 +428,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             greedy = not drive and ep_rng.random() < args.greedy_fraction
             epsilon = 0.0 if greedy else eps_at(state["step"])
             steps, stats = play_episode(act_q, env, epsilon, rng, oracle, args.relabel_time_budget, drive)
-            rows = episode_rows(steps, stats["terminated"], args.gamma, args.n_step, args.feasible_labels)
+            rows = episode_rows(steps, stats["success"], args.gamma, args.n_step, args.feasible_labels)
             replay.add(rows)
             state["episodes"] += 1
             window["rows"] += len(rows["action"])
@@ -470,9 +476,8 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                     m["q_return_corr"].append(correlation(q_taken, batch["mc_return"]))
                     if lab.any():
                         m["agreement"].append(expert_agreement(q.detach()[lab], batch["expert"][lab]))
-                m_l = window["m"]
-                m_l["l_dqn"].append(l_dqn.item())
-                m_l["l_hscl"].append(l_hscl.item())
+                window["m"]["l_dqn"].append(l_dqn.item())
+                window["m"]["l_hscl"].append(l_hscl.item())
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(params, args.grad_clip)
@@ -530,6 +535,22 @@ def _log_row(args: Args, state: dict, window: dict, session_t0: float, epsilon: 
 
 
 # --- checkpoints and resuming -------------------------------------------------------------------------------
+def add_log_columns(path: Path, columns: tuple) -> None:
+    """A log written before a column was added (a resumed run) gets it, empty in its old rows; the columns are
+    then `columns` in that order. Any other difference is left for CsvLog to refuse."""
+    import csv
+
+    if not path.is_file():
+        return
+    with path.open() as f:
+        header = next(csv.reader(f), None)
+        rows = list(csv.DictReader(f, fieldnames=header)) if header else []
+    if header is None or tuple(header) == tuple(columns) or not set(header) < set(columns):
+        return
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns, restval="")
+        writer.writeheader()
+        writer.writerows(rows)
 def _checkpoint(args: Args, run_dir: Path, net, target, opt, state: dict, session_t0: float) -> None:
     """runs/<name>/checkpoint.pt (with the optimizer, for this machine) and last.pt + state.json (weights and
     counters only: what publish_dir carries to a fresh machine)."""
