@@ -2,7 +2,8 @@
 fleet's rate and in a burst far above it), SIGTERM finalises the file, SIGKILL keeps every flushed chunk.
 
 The test process publishes on every topic a 3-robot fleet records, with the types and QoS the fleet's
-nodes use (depth 10, reliable; /fleet/status depth 100; /map and initialpose latched, depth 1). Each
+nodes use (mapf_world.fleet_qos: reliable; odometry and cmd_vel 2 s of samples at factor 10, i.e. depth 200;
+/fleet/status depth 100; /map and initialpose latched, depth 1; the rest depth 10). Each
 message carries its index (a step field, a header stamp, ...) so the log can be checked message by
 message: exactly the published number, in order, with their stamps.
 """
@@ -34,10 +35,11 @@ def fleet_topics():
     from geometry_msgs.msg import PoseWithCovarianceStamped, Twist
     from mapf_msgs.msg import AgentAction, AgentObservation, CellMove, FleetStatus
     from nav_msgs.msg import OccupancyGrid, Odometry
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from visualization_msgs.msg import Marker, MarkerArray
 
-    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    from mapf_world.fleet_qos import DEFAULT_DEPTH, LATCHED as latched, STATUS_DEPTH, history_depth
+    drive = history_depth(100.0)          # the drive executor's ticks at rate_hz 10 x real_time_factor 10
+    markers = history_depth(1.0 / 0.2)    # the world node's marker_period_s
 
     def stamped(cls):
         def make(k):
@@ -55,18 +57,18 @@ def fleet_topics():
     for i in range(N_ROBOTS):
         ns = f"/robot_{i}"
         out += [
-            (f"{ns}/observation", AgentObservation, 10, lambda k, i=i: AgentObservation(step=k, robot_id=i), lambda m: m.step),
-            (f"{ns}/action", AgentAction, 10, lambda k, i=i: AgentAction(step=k, robot_id=i), lambda m: m.step),
-            (f"{ns}/cell_move", CellMove, 10, lambda k, i=i: CellMove(step=k, robot_id=i), lambda m: m.step),
-            (f"{ns}/cmd_vel", Twist, 10, twist, lambda m: int(m.linear.x)),
-            (f"{ns}/odom", Odometry, 10, stamped(Odometry), lambda m: m.header.stamp.sec),
+            (f"{ns}/observation", AgentObservation, DEFAULT_DEPTH, lambda k, i=i: AgentObservation(step=k, robot_id=i), lambda m: m.step),
+            (f"{ns}/action", AgentAction, DEFAULT_DEPTH, lambda k, i=i: AgentAction(step=k, robot_id=i), lambda m: m.step),
+            (f"{ns}/cell_move", CellMove, DEFAULT_DEPTH, lambda k, i=i: CellMove(step=k, robot_id=i), lambda m: m.step),
+            (f"{ns}/cmd_vel", Twist, drive, twist, lambda m: int(m.linear.x)),
+            (f"{ns}/odom", Odometry, drive, stamped(Odometry), lambda m: m.header.stamp.sec),
             (f"{ns}/initialpose", PoseWithCovarianceStamped, latched, stamped(PoseWithCovarianceStamped),
              lambda m: m.header.stamp.sec),
         ]
     out += [
-        ("/fleet/status", FleetStatus, 100, lambda k: FleetStatus(step=k), lambda m: m.step),
+        ("/fleet/status", FleetStatus, STATUS_DEPTH, lambda k: FleetStatus(step=k), lambda m: m.step),
         ("/map", OccupancyGrid, latched, stamped(OccupancyGrid), lambda m: m.header.stamp.sec),
-        ("/fleet/markers", MarkerArray, 10, lambda k: MarkerArray(markers=[Marker(id=k)]), lambda m: m.markers[0].id),
+        ("/fleet/markers", MarkerArray, markers, lambda k: MarkerArray(markers=[Marker(id=k)]), lambda m: m.markers[0].id),
     ]
     return out
 

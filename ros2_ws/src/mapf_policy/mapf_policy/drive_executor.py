@@ -26,15 +26,13 @@ from geometry_msgs.msg import PoseWithCovarianceStamped, Twist
 from mapf_msgs.msg import CellMove
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
 
 from mapf_policy.drive import (DriveLimits, Pose2D, cell_to_xy, integrate, plan_cell_move,
                                quaternion_from_yaw, xy_to_cell, yaw_from_quaternion)
 from mapf_world.fleet_core import resolve_robot_id
+from mapf_world.fleet_qos import DEFAULT_DEPTH, LATCHED, history_depth
 from mapf_world.node_main import run_node
-
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def positive(node: Node, name: str) -> float:
@@ -77,9 +75,11 @@ class DriveExecutor(Node):
         self.queue = deque()             # CellMoves waiting for the move in progress
         self.last_step = -1
         self.sim_ns = time.time_ns()     # simulated clock, advanced dt per tick
-        self.odom_pub = self.create_publisher(Odometry, "odom", 10)
-        self.cmd_pub = self.create_publisher(Twist, "cmd_vel", 10)
-        self.create_subscription(CellMove, "cell_move", self.on_cell_move, 10)
+        # One tick per dt / rtf wall seconds: keep fleet_qos.REPAIR_WINDOW_S of ticks for the reliable protocol.
+        depth = history_depth(rate * self.rtf)
+        self.odom_pub = self.create_publisher(Odometry, "odom", depth)
+        self.cmd_pub = self.create_publisher(Twist, "cmd_vel", depth)
+        self.create_subscription(CellMove, "cell_move", self.on_cell_move, DEFAULT_DEPTH)
         self.create_subscription(PoseWithCovarianceStamped, "initialpose", self.on_initial_pose, LATCHED)
         self.create_timer(self.dt / self.rtf, self.tick)
         self.get_logger().info(f"robot {self.robot_id}: cell {self.cell_size} m, limits {self.limits.max_linear} m/s "

@@ -33,6 +33,7 @@ from rclpy.node import Node  # noqa: E402
 from mapf_policy.action_selection import ActionRule  # noqa: E402
 from mapf_policy.runtime_policy import RuntimePolicy  # noqa: E402
 from mapf_world.fleet_core import resolve_robot_id  # noqa: E402
+from mapf_world.fleet_qos import DEFAULT_DEPTH  # noqa: E402
 from mapf_world.node_main import run_node  # noqa: E402
 
 DEFAULT_MODEL = "models/hscl.npz"
@@ -101,7 +102,7 @@ class PolicyNode(Node):
         self.get_logger().info(f"robot {self.robot_id}: model {model_path} (from {source.get('file')} "
                                f"{str(source.get('sha256'))[:12]}, fov {l}, action rule {rule.asdict()}, seed {seed}) "
                                f"ready in {time.perf_counter() - t0:.2f} s")
-        self.action_pub = self.create_publisher(AgentAction, "action", 10)
+        self.action_pub = self.create_publisher(AgentAction, "action", DEFAULT_DEPTH)
         self.create_subscription(AgentObservation, "observation", self.on_observation, 10)
 
     def on_observation(self, msg: AgentObservation) -> None:

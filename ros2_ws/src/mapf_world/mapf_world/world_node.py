@@ -26,16 +26,14 @@ from mapf_msgs.msg import AgentAction, AgentObservation, CellMove, FleetStatus
 from nav_msgs.msg import OccupancyGrid, Odometry
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from visualization_msgs.msg import MarkerArray
 
 from mapf_world import fleet_msgs
 from mapf_world.fleet_core import (INSTANCE_SOURCES, Deadline, FleetCore, Phase, State, common_drive_start,
                                    describe_moves, load_fleet_instance, pose_error)
+from mapf_world.fleet_qos import DEFAULT_DEPTH, LATCHED, STATUS_DEPTH, history_depth
 from mapf_world.node_main import create_node
 from mapf_world.observation import ObservationBuilder
-
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class RobotTrack:
@@ -77,8 +75,8 @@ class WorldNode(Node):
         self._ready_since = None
 
         ns = [f"{p['robot_namespace_prefix']}{i}" for i in range(self.n)]
-        self.obs_pubs = [self.create_publisher(AgentObservation, f"{n}/observation", 10) for n in ns]
-        self.move_pubs = [self.create_publisher(CellMove, f"{n}/cell_move", 10) for n in ns]
+        self.obs_pubs = [self.create_publisher(AgentObservation, f"{n}/observation", DEFAULT_DEPTH) for n in ns]
+        self.move_pubs = [self.create_publisher(CellMove, f"{n}/cell_move", DEFAULT_DEPTH) for n in ns]
         self.action_topics = [f"{n}/action" for n in ns]
         for i, n in enumerate(ns):
             self.create_subscription(AgentAction, f"{n}/action", lambda m, i=i: self.on_action(i, m), 10)
@@ -86,9 +84,10 @@ class WorldNode(Node):
                 self.create_subscription(Odometry, f"{n}/odom", lambda m, i=i: self.on_odom(i, m), 10)
             else:
                 self.create_subscription(PoseStamped, f"{n}/{p['pose_topic']}", lambda m, i=i: self.on_pose(i, m), 10)
-        self.status_pub = self.create_publisher(FleetStatus, "fleet/status", 100)
+        self.status_pub = self.create_publisher(FleetStatus, "fleet/status", STATUS_DEPTH)
         self.map_pub = self.create_publisher(OccupancyGrid, "map", LATCHED)
-        self.marker_pub = self.create_publisher(MarkerArray, "fleet/markers", 10)
+        self.marker_pub = self.create_publisher(MarkerArray, "fleet/markers",
+                                               history_depth(1.0 / p["marker_period_s"]))
         self.map_pub.publish(fleet_msgs.occupancy_grid(inst.grid, self.cell_size, self.header()))
         if p["pose_source"] == "odom":
             self.initial_pubs = [self.create_publisher(PoseWithCovarianceStamped, f"{n}/initialpose", LATCHED) for n in ns]
