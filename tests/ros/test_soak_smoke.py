@@ -26,3 +26,7 @@ def test_bench_soak_runs_episodes_back_to_back_and_accounts_for_every_message(re
     for name, u in report["usage"].items():
         assert u["rss_start_mb"] > 0 and u["rss_end_mb"] > 0, name
     assert "crashes: none" in proc.stdout
+    # The RSS series: a header, the first sample and the last (taken when the soak ends).
+    rows = [line.split("\t") for line in (out / "rss_kb.tsv").read_text().splitlines()]
+    assert rows[0][:4] == ["t_s", "steps", "episodes", "recorder"] and len(rows) >= 3
+    assert rows[-1][1] == str(totals["steps"]) and all(v != "-" for v in rows[-1][3:])

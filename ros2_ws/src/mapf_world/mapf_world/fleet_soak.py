@@ -4,7 +4,9 @@ One recorder, and per robot a policy node and a drive executor, run for the whol
 a new world node on a new seeded random map (its latched initial poses put the robots on their new start
 cells). Reports, per process, memory (RSS) and CPU after the warm-up and at the end, the messages the
 publishers numbered against those the recorder received (its sequence-number account) and wrote,
-failed moves, timeouts and crashes (a node that exits by itself, an aborted episode).
+failed moves, timeouts and crashes (a node that exits by itself, an aborted episode). The RSS of every
+long-running process is also sampled every --rss-period-s into <out>/rss_kb.tsv (RssSeries), to tell
+growth per episode, per message or per minute apart.
 
 Usage: scripts/bench_soak [--robots 8] [--steps 10000] [--out DIR] [...]
 """
@@ -23,7 +25,6 @@ from pathlib import Path
 from mapf_world.fleet_launch import ProcessGroup, claim_domain_id, node_command
 
 
-
 @dataclass
 class SoakConfig:
     robots: int = 8
@@ -37,12 +38,40 @@ class SoakConfig:
     real_time_factor: float = 10.0
     rate_hz: float = 10.0
     episode_timeout_s: float = 600.0
+    rss_period_s: float = 60.0   # period of the RSS series (<out>/rss_kb.tsv)
     out: str = ""
 
 
 def usage_row(group: ProcessGroup, name: str):
     u = group.usage(name)
     return None if u is None else {"cpu_s": u.cpu_s, "rss_mb": u.rss_mb, "t": time.monotonic()}
+
+
+class RssSeries:
+    """The RSS series of a soak: a tab-separated file with a header line (t_s, steps, episodes, then one
+    column per process), then one line per sample: wall seconds since the start, grid steps and episodes
+    done so far, and each process's RSS in KiB ('-' for one that is not running). sample() writes a line
+    when period_s has passed since the last one (the first call always does); force=True writes one now."""
+
+    def __init__(self, path: Path, names, period_s: float, clock=time.monotonic):
+        if not period_s > 0:
+            raise ValueError(f"RSS sample period must be > 0 s, got {period_s!r}")
+        self.path, self.names, self.period_s, self.clock = Path(path), list(names), float(period_s), clock
+        self.t0 = clock()
+        self.last = None
+        self.path.write_text("\t".join(["t_s", "steps", "episodes"] + self.names) + "\n")
+
+    def sample(self, rss_mb, steps: int, episodes: int, force: bool = False) -> bool:
+        """rss_mb(name) -> MiB or None. True when a line was written."""
+        now = self.clock()
+        if not force and self.last is not None and now - self.last < self.period_s:
+            return False
+        self.last = now
+        kib = ["-" if v is None else str(round(v * 1024)) for v in map(rss_mb, self.names)]
+        cells = [f"{now - self.t0:.0f}", str(steps), str(episodes)] + kib
+        with self.path.open("a") as f:
+            f.write("\t".join(cells) + "\n")
+        return True
 
 
 def run(cfg: SoakConfig, progress=None) -> dict:
@@ -68,6 +97,12 @@ def run(cfg: SoakConfig, progress=None) -> dict:
     steady = ["recorder"] + robots
     t0 = time.monotonic()
     totals = dict(steps=0, episodes=0, successes=0, failed_moves=0, timeouts=0, rejected=0, aborted=0)
+    rss = RssSeries(out / "rss_kb.tsv", steady, cfg.rss_period_s)
+
+    def rss_mb(name):
+        u = group.usage(name)
+        return None if u is None else u.rss_mb
+
     start_usage, world_usage, crashes, episodes = None, {}, [], []
     stopped = []
 
@@ -93,6 +128,7 @@ def run(cfg: SoakConfig, progress=None) -> dict:
             proc = group.procs[name]
             while proc.poll() is None and time.monotonic() < end:
                 world_usage = usage_row(group, name) or world_usage
+                rss.sample(rss_mb, totals["steps"], totals["episodes"])
                 time.sleep(0.5)
             if proc.poll() is None:
                 group.stop(name)
@@ -128,6 +164,7 @@ def run(cfg: SoakConfig, progress=None) -> dict:
     finally:
         end_usage = {n: usage_row(group, n) for n in steady}
         end_usage["world"] = world_usage
+        rss.sample(rss_mb, totals["steps"], totals["episodes"], force=True)
         codes = group.stop_all([n for n in group.procs if n != "recorder"])
         codes |= group.stop_all(["recorder"])
         lock.close()
@@ -147,7 +184,7 @@ def run(cfg: SoakConfig, progress=None) -> dict:
                      "in_file": in_file},
         "stopped_early": stopped[0] if stopped else None,
         "crashes": crashes, "usage": per_process(start_usage, end_usage, t0), "episodes": episodes,
-        "out": str(out),
+        "out": str(out), "rss_series": str(rss.path),
     }
 
 
@@ -176,8 +213,8 @@ def main(argv=None) -> int:
     for name, value in asdict(SoakConfig()).items():
         ap.add_argument("--" + name.replace("_", "-"), type=type(value), default=value, help=f"(default {value!r})")
     cfg = SoakConfig(**vars(ap.parse_args(argv)))
-    if cfg.robots < 1 or cfg.steps < 1 or cfg.warmup_steps < 0:
-        ap.error("--robots and --steps must be >= 1 and --warmup-steps >= 0")
+    if cfg.robots < 1 or cfg.steps < 1 or cfg.warmup_steps < 0 or not cfg.rss_period_s > 0:
+        ap.error("--robots and --steps must be >= 1, --warmup-steps >= 0 and --rss-period-s > 0")
     out = Path(cfg.out or f"runs/soak/{time.strftime('%Y%m%d-%H%M%S')}")
     cfg.out = str(out)
     out.mkdir(parents=True, exist_ok=True)
