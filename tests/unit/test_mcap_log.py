@@ -116,7 +116,7 @@ def test_bad_compression_is_refused(tmp_path):
         McapRos2Writer(tmp_path / "x.mcap", compression="gzip")
 
 
-def test_a_long_recording_keeps_under_1_kb_per_chunk_and_its_summary_indexes_every_chunk(tmp_path):
+def test_a_long_recording_keeps_nothing_in_memory_per_chunk_and_its_summary_indexes_every_chunk(tmp_path):
     import tracemalloc
 
     from mcap.reader import make_reader
@@ -139,7 +139,9 @@ def test_a_long_recording_keeps_under_1_kb_per_chunk_and_its_summary_indexes_eve
     per_chunk = (tracemalloc.get_traced_memory()[0] - before) / 1000
     tracemalloc.stop()
     w.close()
-    assert per_chunk < 1024, f"{per_chunk:.0f} bytes kept per chunk"
+    # The chunk indexes wait in a temporary file (SpilledChunkIndexes): in memory they were 0.6 KB a chunk.
+    assert per_chunk < 16, f"{per_chunk:.0f} bytes kept per chunk"
+    assert [p.name for p in tmp_path.iterdir()] == ["long.mcap"]  # the temporary file is gone
     with open(path, "rb") as f:
         reader = make_reader(f)
         summary = reader.get_summary()

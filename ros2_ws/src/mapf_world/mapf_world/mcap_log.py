@@ -16,6 +16,7 @@ package on AMENT_PREFIX_PATH works, including this project's mapf_msgs.
 from __future__ import annotations
 
 import re
+import tempfile
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
@@ -108,22 +109,49 @@ def message_definition(type_name: str, read: Optional[Callable[[str, str], str]]
     return full_text(*split_type_name(type_name), 0)
 
 
-class PackedChunkIndex:
-    """A chunk index kept as its serialised record until the summary is written.
+class SpilledChunkIndexes:
+    """The MCAP writer's list of chunk indexes, kept in an unnamed temporary file until the summary.
 
-    The MCAP writer keeps one ChunkIndex per chunk for the summary; as Python objects (a dict of the
-    message index offset of every channel) that is about 4 KB per chunk, so a recorder that writes a
-    chunk every second would grow by 14 MB an hour. Packed, it is the record's bytes, about 0.5 KB.
+    The writer keeps one ChunkIndex per chunk for the summary at the end of the file. A recorder writes a
+    chunk every flush_period_s, so kept in memory they grow with the recording's length: as Python objects
+    (a dict of the message index offset of every channel) about 4 KB per chunk, 14 MB an hour; as their
+    serialised records about 0.6 KB per chunk, still 2 MB an hour (the soaks in docs/FLEET.md). Here each
+    is appended to the file as its record, and read back once when the summary is written; nothing stays
+    in memory per chunk. The file lies beside the MCAP file and disappears when closed (or the process dies).
     """
-    __slots__ = ("record",)
 
-    def __init__(self, index: ChunkIndex):
+    def __init__(self, directory: Path):
+        self._file = tempfile.TemporaryFile(dir=directory, prefix=".chunk_indexes.")
+        self._count = 0
+
+    def append(self, index: ChunkIndex) -> None:
         builder = RecordBuilder()
         index.write(builder)
-        self.record = builder.end()
+        self._file.write(builder.end())
+        self._count += 1
+
+    def __len__(self) -> int:
+        return self._count
+
+    def __iter__(self):
+        """One item whose write() copies every record, in order (what Writer.finish needs)."""
+        self._file.flush()
+        self._file.seek(0)
+        yield _RawRecords(self._file.read())
+        self._file.seek(0, 2)
+
+    def close(self) -> None:
+        self._file.close()
+
+
+class _RawRecords:
+    __slots__ = ("data",)
+
+    def __init__(self, data: bytes):
+        self.data = data
 
     def write(self, stream: RecordBuilder) -> None:
-        stream.write(self.record)
+        stream.write(self.data)
 
 
 class McapRos2Writer:
@@ -149,10 +177,13 @@ class McapRos2Writer:
         self._last_ns = 0
         self.message_count = 0
         self.closed = False
-        # The writer's list of chunk indexes (mcap 1.6.0, pinned; tests/unit/test_mcap_log.py checks
-        # that it is found and that a chunk costs under 1 KB): packed after every flush.
-        self._chunk_indexes = getattr(self._writer, "_Writer__chunk_indices")
-        self._packed = 0
+        # The writer's list of chunk indexes (mcap 1.6.0, pinned), replaced by one kept on disk
+        # (tests/unit/test_mcap_log.py checks that nothing stays in memory per chunk).
+        if not isinstance(getattr(self._writer, "_Writer__chunk_indices", None), list):
+            raise RuntimeError("mcap.writer.Writer no longer keeps its chunk indexes in _Writer__chunk_indices; "
+                               "see SpilledChunkIndexes in mapf_world/mcap_log.py")
+        self._chunk_indexes = SpilledChunkIndexes(self.path.parent)
+        setattr(self._writer, "_Writer__chunk_indices", self._chunk_indexes)
         self._write_bag_metadata()
         self._writer.flush()  # header and bag metadata on disk at once: a killed recorder leaves a readable start
 
@@ -202,13 +233,6 @@ class McapRos2Writer:
         """Write the chunk in progress to disk (a crash after this loses nothing written so far)."""
         if not self.closed:
             self._writer.flush()
-            self._pack_chunk_indexes()
-
-    def _pack_chunk_indexes(self) -> None:
-        indexes = self._chunk_indexes
-        for k in range(self._packed, len(indexes)):
-            indexes[k] = PackedChunkIndex(indexes[k])
-        self._packed = len(indexes)
 
     def close(self) -> None:
         """Finish the file (summary, indexes); safe to call twice."""
@@ -220,6 +244,7 @@ class McapRos2Writer:
             self._writer.finish()
         finally:
             self._stream.close()
+            self._chunk_indexes.close()
 
     def __enter__(self):
         return self
