@@ -46,6 +46,28 @@ def test_process_group_stops_and_measures(tmp_path):
     assert read_usage(group.procs["sleeper"].pid) is None
 
 
+def test_a_process_that_ignores_sigint_and_sigterm_leaves_its_stacks_in_its_log_before_sigkill(tmp_path):
+    import sys
+    import time
+    group = ProcessGroup(tmp_path)
+    child = ("import faulthandler, signal, time\n"
+             "faulthandler.register(signal.SIGUSR1, all_threads=True)  # as node_main.dump_stacks_on_signal\n"
+             "signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+             "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+             "def stuck_here():\n"
+             "    print('stuck' + ' is up', flush=True)\n"
+             "    time.sleep(60)\n"
+             "stuck_here()\n")
+    group.start("stuck", [sys.executable, "-c", child])
+    end = time.monotonic() + 60
+    while "stuck is up" not in group.log_text("stuck") and time.monotonic() < end:
+        time.sleep(0.05)
+    assert group.stop("stuck", timeout=0.5) == -9
+    log = group.log_text("stuck")
+    assert "[launch] stuck still running after SIGINT and SIGTERM: its stacks (SIGUSR1) follow, then SIGKILL" in log
+    assert 'line 7 in stuck_here' in log, log
+
+
 def test_render_png_and_gif(tmp_path):
     from mapf_world.render import render_gif, render_png
     grid = np.zeros((4, 5), np.uint8)

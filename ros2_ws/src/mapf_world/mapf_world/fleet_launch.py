@@ -121,6 +121,11 @@ def read_usage(pid: int) -> Optional[Usage]:
     return Usage(cpu, mem.get("VmRSS", 0.0), mem.get("VmHWM", 0.0))
 
 
+# Sent to a process still running after SIGINT and SIGTERM, before SIGKILL: every node registers it to print
+# each thread's Python stack into its log (node_main.dump_stacks_on_signal), so a hang leaves its place.
+STACK_DUMP_SIGNAL = signal.SIGUSR1
+
+
 def _default_sigint() -> None:
     """Child side of Popen: SIGINT back to its default action.
 
@@ -166,13 +171,18 @@ class ProcessGroup:
             proc.send_signal(sig)
 
     def stop(self, name: str, sig: int = signal.SIGINT, timeout: float = 10.0) -> Optional[int]:
-        """Signal one process and wait; escalate to SIGTERM, then SIGKILL. Returns its exit code."""
+        """Signal one process and wait; escalate to SIGTERM, then STACK_DUMP_SIGNAL (a node prints its threads'
+        stacks to its log; a process without that handler ends by it), then SIGKILL. Returns its exit code."""
         proc = self.procs.get(name)
         if proc is None:
             return None
-        for s, wait in ((sig, timeout), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+        for s, wait in ((sig, timeout), (signal.SIGTERM, 5.0), (STACK_DUMP_SIGNAL, 2.0), (signal.SIGKILL, 5.0)):
             if proc.poll() is not None:
                 break
+            if s == STACK_DUMP_SIGNAL:
+                self._logs[name].write(f"[launch] {name} still running after {signal.Signals(sig).name} and SIGTERM: "
+                                       f"its stacks ({STACK_DUMP_SIGNAL.name}) follow, then SIGKILL\n".encode())
+                self._logs[name].flush()
             proc.send_signal(s)
             try:
                 proc.wait(timeout=wait)

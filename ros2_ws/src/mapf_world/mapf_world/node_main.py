@@ -7,6 +7,7 @@ destroyed (the recorder finalises its MCAP file there).
 """
 from __future__ import annotations
 
+import faulthandler
 import os
 import signal
 import sys
@@ -17,12 +18,22 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
+from mapf_world.fleet_launch import STACK_DUMP_SIGNAL
+
 STOP_POLL_S = 0.1  # how often a node with a file to finalise checks for a requested stop
 REFUSALS: Tuple[Type[BaseException], ...] = (ValueError, OSError, ParameterException)
 
 
+def dump_stacks_on_signal() -> None:
+    """On STACK_DUMP_SIGNAL print every thread's Python stack to stderr (the node's log) and go on. It works
+    while the main thread is stuck in C code, where a Python signal handler (SIGINT, SIGTERM) never runs:
+    ProcessGroup.stop sends it to a node that did not stop, before SIGKILL."""
+    faulthandler.register(STACK_DUMP_SIGNAL, all_threads=True)
+
+
 def create_node(name: str, factory: Callable[[], Node]) -> Optional[Node]:
     """Create the node; None when a signal stopped the start-up. Refusals exit with code 2."""
+    dump_stacks_on_signal()
     try:
         return factory()
     except REFUSALS as exc:
