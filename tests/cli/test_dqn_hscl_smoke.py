@@ -74,6 +74,7 @@ def test_ladder_reports_a_rung_and_fails_an_untrained_model(repo_root, tmp_path)
         stuck = rows[0]["stuck"]
         assert stuck["failed_cases"] == 5 - rows[0]["successes"] and "refused moves" in out.stdout
         assert 0 <= stuck["refused_is_argmax"] <= stuck["refused"] and stuck["label_is_refused_move"] <= stuck["labelled"]
+        assert stuck["fixed_point"] <= stuck["failed_cases"] and stuck["refused_with_room"] <= stuck["refused"]
     missing = subprocess.run([str(repo_root / "scripts" / "ladder"), str(tmp_path / "nope.pt")], capture_output=True,
                              text=True, timeout=60)
     assert missing.returncode == 2 and "does not exist" in missing.stderr

@@ -40,6 +40,12 @@ def test_n_step_rows_of_a_truncated_episode_bootstrap_at_the_end():
     assert rows["next_last_action"].tolist() == [3, 3, 3]
 
 
+def test_an_episode_shorter_than_n_step_sums_what_it_has():
+    rows = episode_rows(_steps([-1, 3]), terminated=True, gamma=0.5, n_step=8)
+    np.testing.assert_allclose(rows["ret"], [-1 + 0.5 * 3, 3])
+    assert rows["boot_gamma"].tolist() == [0.0, 0.0]  # both reach the terminal state
+
+
 def test_rows_are_step_major_over_agents():
     rows = episode_rows(_steps([[-1, 0], [3, 3]], n_agents=2), terminated=True, gamma=1.0, n_step=1)
     np.testing.assert_allclose(rows["ret"], [-1, 0, 3, 3])
@@ -53,6 +59,22 @@ def test_replay_keeps_the_newest_and_builds_inputs():
     assert rep.size == 3 and sorted(rep.data["position"][:, 0].tolist()) == [2, 3, 4]
     b = rep.sample(4, np.random.default_rng(0))
     assert b["fov"].shape == (4, 6, 9, 9) and b["last_action"].shape == (4, 5) and b["action"].dtype == torch.int64
+
+
+def test_prioritised_replay_draws_rows_by_td_error():
+    rows = episode_rows(_steps([-1] * 4), terminated=False, gamma=0.9, n_step=1)
+    rep = Replay(10, alpha=1.0, beta=1.0)
+    rep.add(rows)
+    assert rep.priority[:4].tolist() == [1.0] * 4  # new rows at the highest priority so far
+    rep.update_priorities(np.arange(4), torch.tensor([0.0, 0.0, 0.0, 9.0]))
+    b = rep.sample(4000, np.random.default_rng(0))
+    drawn = np.bincount(b["index"], minlength=4) / 4000
+    assert drawn[3] > 0.99 and rep.max_priority == pytest.approx(9.001)
+    # importance weights (size * P)^-beta / max: the rarely drawn rows weigh 1, the frequent one about 1/9000
+    w = dict(zip(b["index"].tolist(), b["weight"].tolist()))
+    assert w[3] == pytest.approx(0.001 / 9.001, rel=1e-3) and max(w.values()) == 1.0
+    rep.add(rows)  # new rows again at the maximum
+    assert rep.priority[4:8].tolist() == [pytest.approx(9.001)] * 4
 
 
 def test_dueling_network_adds_only_the_value_output():
@@ -145,6 +167,12 @@ def test_bad_stages_and_args_are_named(text, msg):
         Args(last_action="both").validate()
     with pytest.raises(ValueError, match="greedy_fraction"):
         Args(greedy_fraction=1.5).validate()
+    with pytest.raises(ValueError, match="expert_order"):
+        Args(expert_order="random").validate()
+    with pytest.raises(ValueError, match="stuck_steps"):
+        Args(stuck_steps=-1).validate()
+    with pytest.raises(ValueError, match="priority_alpha"):
+        Args(priority_alpha=2.0).validate()
     assert parse_stage("16x40") == (16, 40)
 
 
@@ -181,3 +209,20 @@ def test_a_resumed_log_gets_the_columns_added_since(tmp_path):
     other.write_text("step,gone\n1,2\n")
     add_log_columns(other, ("step", "new"))  # not a subset: left alone (CsvLog refuses it)
     assert other.read_text() == "step,gone\n1,2\n"
+
+
+def test_greedy_until_stuck_explores_only_after_a_fixed_point():
+    """Two agents pushing head-on forever (a greedy deadlock): no random action before the positions have
+    stayed the same for k steps, then epsilon (here 1) applies."""
+    grid = np.zeros((3, 3), np.uint8)
+    env = MapfEnv(grid, np.array([[1, 0], [1, 1]]), np.array([[1, 1], [1, 0]]), max_steps=12, last_action="executed")
+
+    def push(fov, last, pos):  # agent 0 right, agent 1 left: a swap, refused every step
+        return torch.tensor([[0.0, 0, 0, 0, 1], [0.0, 0, 0, 1, 0]])
+
+    steps, _ = play_episode(push, env, 1.0, np.random.default_rng(1), greedy_until_stuck=3)
+    acts = np.stack(steps["action"])
+    assert acts[:3].tolist() == [[4, 3]] * 3  # greedy while the positions had stayed the same < 3 steps
+    assert (acts[3:] != [4, 3]).any()  # exploration from the fixed point on
+    steps, _ = play_episode(push, env, 1.0, np.random.default_rng(1), greedy_until_stuck=0)
+    assert (np.stack(steps["action"])[:3] != [4, 3]).any()  # plain epsilon-greedy from the first step

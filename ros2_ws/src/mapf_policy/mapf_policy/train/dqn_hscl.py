@@ -40,7 +40,7 @@ import torch
 from torch.nn import functional as F
 from tqdm import tqdm
 
-from mapf_policy.config import NetworkConfig, ABLATIONS
+from mapf_policy.config import ABLATIONS, EXPERT_ORDERS, NetworkConfig
 from mapf_policy.inference import FastForward, InferenceNet
 from mapf_policy.losses import expert_agreement, hscl_loss
 from mapf_policy.model_io import load_model, save_model
@@ -102,6 +102,12 @@ class Args:
     """HSCL temperature T (eq. 13)."""
     replay_capacity: int = 200_000
     """Rows kept in the replay (oldest overwritten)."""
+    priority_alpha: float = 0.0
+    """Prioritised replay (DHC: 0.6): a row is drawn with probability proportional to (|TD error| + 0.001)^alpha,
+    new rows at the highest priority so far; 0: uniform."""
+    priority_beta: float = 0.4
+    """Importance-sampling exponent of prioritised replay (DHC: 0.4): the DQN term weights a row by
+    (size * P(row))^-beta / max over the batch."""
     learning_starts: int = 2_000
     """Rows in the replay before the first gradient step."""
     replay_ratio: float = 4.0
@@ -119,8 +125,16 @@ class Args:
     greedy_fraction: float = 0.0
     """Share of the policy-driven episodes played without exploration (epsilon 0), so that the states where a
     greedy team deadlocks, which epsilon-greedy play leaves within a step, enter the replay."""
+    stuck_steps: int = 0
+    """In those greedy episodes, exploration (epsilon) starts once the joint positions have stayed the same for
+    this many steps: the greedy fixed point (a deadlock) enters the replay with a few rows, not a whole episode
+    of them, and so does what follows when an agent leaves it. 0: greedy to the end."""
     expert: str = "odrmstar"
     """'odrmstar' (the paper's) or 'shortest_path' (a stand-in for tests)."""
+    expert_order: str = "index"
+    """The order in which ODrM* takes the agents, which decides who gives way where moves tie (train/expert.py):
+    'index' (the instance's, which no agent can observe), 'reversed', or 'position' (by cell, row first, which
+    each agent can work out from its position input and the agents it sees; beyond the paper)."""
     expert_epsilon: float = 10.0
     """ODrM* inflation."""
     expert_time_limit: float = 2.0
@@ -160,11 +174,12 @@ class Args:
                 raise ValueError(msg)
         need(self.variant in ("hscl",) + tuple(ABLATIONS), f"variant must be hscl or one of {tuple(ABLATIONS)}, got {self.variant!r}")
         need(self.last_action in LAST_ACTION_MODES, f"last_action must be one of {LAST_ACTION_MODES}, got {self.last_action!r}")
+        need(self.stuck_steps >= 0, f"stuck_steps must be >= 0, got {self.stuck_steps}")
         for name in ("total_steps", "batch_size", "n_step", "target_update_every", "replay_capacity",
                      "max_episode_steps", "eval_cases", "log_every", "threads"):
             need(int(getattr(self, name)) >= 1, f"{name} must be >= 1, got {getattr(self, name)}")
         for name in ("eps_start", "eps_end", "relabel_fraction", "expert_drive_fraction", "greedy_fraction",
-                     "advance_pass_rate", "review_fraction", "dqn_share"):
+                     "advance_pass_rate", "review_fraction", "dqn_share", "priority_alpha", "priority_beta"):
             need(0.0 <= getattr(self, name) <= 1.0, f"{name} must lie in [0, 1], got {getattr(self, name)}")
         need(self.dqn_share < 1.0, "dqn_share must be < 1")
         need(0.0 < self.gamma <= 1.0, f"gamma must lie in (0, 1], got {self.gamma}")
@@ -173,6 +188,7 @@ class Args:
         need(0.0 < self.tau_h < 0.2, f"tau_h must lie in (0, 0.2), got {self.tau_h}")
         for name in ("lr", "grad_clip", "temperature", "replay_ratio", "huber_delta", "expert_time_limit"):
             need(getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")
+        need(self.expert_order in EXPERT_ORDERS, f"expert_order must be one of {EXPERT_ORDERS}, got {self.expert_order!r}")
         need(self.expert in ("odrmstar", "shortest_path"), f"expert must be odrmstar or shortest_path, got {self.expert!r}")
         need(len(self.stages) >= 1, "stages must name at least one stage")
         for s in self.stages:
@@ -203,16 +219,19 @@ ROW_SPECS = {  # one agent's n-step transition; fov values are 0/1
 
 
 def play_episode(forward, env: MapfEnv, epsilon: float, rng, oracle=None, budget: float = 0.0,
-                 expert_drives: bool = False) -> tuple[dict, dict]:
+                 expert_drives: bool = False, greedy_until_stuck: int = 0) -> tuple[dict, dict]:
     """One episode, every agent acting on its own observation (all in one batch).
 
     Actions: argmax Q (the paper's greedy rule; ties to the lowest index), or the expert's when
-    `expert_drives`; then each agent acts uniformly at random with probability `epsilon`. With `oracle`,
+    `expert_drives`; then each agent acts uniformly at random with probability `epsilon`, or, with
+    `greedy_until_stuck` k > 0, with probability 0 until the joint positions have stayed the same for k steps
+    (a greedy deadlock) and `epsilon` from then on. With `oracle`,
     states are labelled until it fails or `budget` seconds are spent. Returns per-step arrays
     (T steps, N agents; obs has T + 1 entries) and stats."""
     obs, _ = env.reset()
     steps = {"obs": [obs], "action": [], "reward": [], "expert": [], "failed": []}
     spent, labelled, done, terminated = 0.0, 0, False, False
+    still, eps_now = 0, (0.0 if greedy_until_stuck > 0 else epsilon)
     while not done:
         expert = np.full(env.n_agents, -1, dtype=np.int64)
         if oracle is not None and spent < budget:
@@ -229,9 +248,13 @@ def play_episode(forward, env: MapfEnv, epsilon: float, rng, oracle=None, budget
             with torch.inference_mode():
                 q = forward(*(torch.from_numpy(obs[k]) for k in ("fov", "last_action", "position"))).numpy()
             actions = q.argmax(axis=1)
-        explore = rng.random(env.n_agents) < epsilon
+        explore = rng.random(env.n_agents) < eps_now
         actions[explore] = rng.integers(0, 5, int(explore.sum()))
+        before = env.positions.copy()
         obs, reward, terminated, truncated, info = env.step(actions)
+        still = still + 1 if np.array_equal(before, env.positions) else 0
+        if greedy_until_stuck > 0 and still >= greedy_until_stuck:
+            eps_now = epsilon
         for k, v in (("obs", obs), ("action", actions), ("reward", reward), ("expert", expert), ("failed", info["failed"])):
             steps[k].append(v)
         done = terminated or truncated
@@ -265,7 +288,7 @@ def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasi
         acc = reward[t] + gamma * acc
         mc[t] = acc
     ret = np.zeros_like(reward)
-    for k in range(n_step):
+    for k in range(min(n_step, t_len)):  # an episode shorter than n_step sums what it has
         ret[: t_len - k] += gamma ** k * reward[k:]
     m = np.minimum(n_step, t_len - np.arange(t_len))  # (T,)
     boot_gamma = gamma ** m.astype(np.float64)
@@ -292,11 +315,14 @@ def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasi
 
 
 class Replay:
-    """Ring buffer of ROW_SPECS rows; uniform sampling."""
+    """Ring buffer of ROW_SPECS rows; uniform sampling, or prioritised by |TD error| (alpha > 0)."""
 
-    def __init__(self, capacity: int):
+    def __init__(self, capacity: int, alpha: float = 0.0, beta: float = 0.4):
         self.capacity, self.size, self.cursor = capacity, 0, 0
+        self.alpha, self.beta = alpha, beta
         self.data = {k: np.zeros((capacity,) + shape, dtype=dt) for k, (dt, shape) in ROW_SPECS.items()}
+        self.priority = np.zeros(capacity)  # (|TD| + 0.001)^alpha of each row
+        self.max_priority = 1.0
 
     def add(self, rows: dict) -> None:
         n = len(rows["action"])
@@ -305,13 +331,23 @@ class Replay:
         idx = (self.cursor + np.arange(n)) % self.capacity
         for k in ROW_SPECS:
             self.data[k][idx] = rows[k]
+        self.priority[idx] = self.max_priority  # a new row is drawn at least once soon
         self.cursor, self.size = (self.cursor + n) % self.capacity, min(self.capacity, self.size + n)
 
     def sample(self, n: int, rng) -> dict:
-        idx = rng.integers(0, self.size, n)
+        """A batch of n rows as tensors; "index" (for update_priorities) and "weight" (importance sampling,
+        all 1 when uniform) come with it."""
+        if self.alpha > 0:
+            cum = np.cumsum(self.priority[: self.size])
+            idx = np.minimum(np.searchsorted(cum, rng.random(n) * cum[-1], side="right"), self.size - 1)
+            w = (self.size * self.priority[idx] / cum[-1]) ** -self.beta
+            weight = torch.from_numpy((w / w.max()).astype(np.float32))
+        else:
+            idx, weight = rng.integers(0, self.size, n), torch.ones(n)
         eye = torch.eye(5)
         b = {k: torch.from_numpy(v[idx]) for k, v in self.data.items()}
-        t = {"action": b["action"].long(), "expert": b["expert"].long(), "refused": b["refused"], "solved": b["solved"]}
+        t = {"action": b["action"].long(), "expert": b["expert"].long(), "refused": b["refused"], "solved": b["solved"],
+             "index": idx, "weight": weight}
         for k in ("ret", "boot_gamma", "mc_return"):
             t[k] = b[k]
         for pre in ("", "next_"):
@@ -319,6 +355,12 @@ class Replay:
             t[pre + "last_action"] = eye[b[pre + "last_action"].long()]
             t[pre + "position"] = b[pre + "position"].float()
         return t
+
+    def update_priorities(self, idx: np.ndarray, td: torch.Tensor) -> None:
+        if self.alpha > 0:
+            p = (td.abs().double().numpy() + 1e-3) ** self.alpha
+            self.priority[idx] = p
+            self.max_priority = max(self.max_priority, float(p.max()))
 
 
 # --- losses and what to look at -----------------------------------------------------------------------------
@@ -332,7 +374,8 @@ def losses(q: torch.Tensor, next_q_target: torch.Tensor, batch: dict, args: Args
         # "optimality tightening" and self-imitation learning). Unsolved episodes' returns are cut off: no bound.
         target = torch.where(batch["solved"], torch.maximum(target, batch["mc_return"]), target)
     td = target - q_taken
-    l_dqn = F.huber_loss(q_taken, target, delta=args.huber_delta)
+    huber = F.huber_loss(q_taken, target, delta=args.huber_delta, reduction="none")
+    l_dqn = (batch["weight"] * huber).mean() if "weight" in batch else huber.mean()  # importance weights
     labelled = batch["expert"] >= 0
     if labelled.any():
         scores = q - q.mean(dim=1, keepdim=True) if args.dueling else q  # the advantage A of the dueling split
@@ -398,7 +441,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
     add_log_columns(run_dir / "train.csv", TRAIN_COLUMNS)
     online_q, target_q, act_q = FastForward(net), InferenceNet(target), InferenceNet(net)
     params = [p for p in net.parameters()]
-    replay = Replay(args.replay_capacity)
+    replay = Replay(args.replay_capacity, args.priority_alpha, args.priority_beta)
     valid = {k: generated_cases(args.seed, VALID_STREAM, [a], args.eval_cases, s, args.density)
              for k, (a, s) in enumerate(stages)}
     train_log, eval_log = CsvLog(run_dir / "train.csv", TRAIN_COLUMNS), CsvLog(run_dir / "eval.csv", EVAL_COLUMNS)
@@ -424,10 +467,11 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             oracle = None
             if drive or ep_rng.random() < args.relabel_fraction:
                 oracle = make_oracle(args.expert, env.grid, env.goals, env.dist, args.expert_epsilon,
-                                     min(args.expert_time_limit, args.relabel_time_budget))
+                                     min(args.expert_time_limit, args.relabel_time_budget), order=args.expert_order)
             greedy = not drive and ep_rng.random() < args.greedy_fraction
-            epsilon = 0.0 if greedy else eps_at(state["step"])
-            steps, stats = play_episode(act_q, env, epsilon, rng, oracle, args.relabel_time_budget, drive)
+            epsilon = 0.0 if greedy and not args.stuck_steps else eps_at(state["step"])
+            steps, stats = play_episode(act_q, env, epsilon, rng, oracle, args.relabel_time_budget, drive,
+                                        greedy_until_stuck=args.stuck_steps if greedy else 0)
             rows = episode_rows(steps, stats["success"], args.gamma, args.n_step, args.feasible_labels)
             replay.add(rows)
             state["episodes"] += 1
@@ -482,6 +526,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(params, args.grad_clip)
                 opt.step()
+                replay.update_priorities(batch["index"], td)
                 window["steps"] += 1
                 bar.update(1)
                 if state["step"] % args.target_update_every == 0:

@@ -26,6 +26,7 @@ from mapf_policy.model_io import load_model
 from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
 from mapf_policy.train.dqn_hscl import greedy_outcomes, play_episode
 from mapf_world.env import MapfEnv
+from mapf_world.grid import DELTAS
 
 # rung -> (what, [(agents, map side, success bar)])
 RUNGS = {
@@ -62,24 +63,32 @@ def run_rung(path, rung: int, cases: int, seed: int = 0, density: float = 0.3, m
     return rows
 
 
+def _free(grid: np.ndarray, cell: np.ndarray) -> bool:
+    return 0 <= cell[0] < grid.shape[0] and 0 <= cell[1] < grid.shape[1] and grid[cell[0], cell[1]] == 0
+
+
 def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, density: float = 0.3,
                  max_steps: int = 256) -> dict:
     """Where greedy failures stand at their last step: agents whose move was refused, whether that move is
     their argmax, its lead over the runner-up, and whether ODrM* (bound 10, 2 s) labels that same move.
 
-    A refused move repeated at a fixed point (the same observation each step) is a greedy deadlock."""
+    A refused move repeated at a fixed point (the same observation each step) is a greedy deadlock.
+    `fixed_point`: failed cases whose agents all stood still over the last 10 steps; `refused_with_room`: refused
+    agents with 3 or 4 free neighbour cells (room to step aside; 2 or fewer: a corridor or a dead end)."""
     from mapf_policy.train.expert import ExpertFailed, make_oracle
 
     net, _, meta = load_model(path)
     forward, mode = InferenceNet(net), model_last_action(meta)
-    out = {"failed_cases": 0, "refused": 0, "refused_is_argmax": 0, "label_is_refused_move": 0, "labelled": 0,
-           "lead": []}
+    out = {"failed_cases": 0, "fixed_point": 0, "refused": 0, "refused_with_room": 0, "refused_is_argmax": 0,
+           "label_is_refused_move": 0, "labelled": 0, "lead": []}
     for inst in generated_cases(seed, COMPARE_STREAM, [agents], cases, side, density):
         env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode)
         steps, stats = play_episode(forward, env, 0.0, np.random.default_rng(0))
         if stats["success"]:
             continue
         out["failed_cases"] += 1
+        trail = np.stack([o["position"] for o in steps["obs"][-11:]])
+        out["fixed_point"] += int((trail == trail[-1]).all())
         obs, action, refused = steps["obs"][-2], steps["action"][-1], steps["failed"][-1]
         with torch.inference_mode():
             q = forward(*(torch.from_numpy(obs[k]) for k in ("fov", "last_action", "position"))).numpy()
@@ -89,6 +98,9 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
         except ExpertFailed:
             label = None
         for i in np.flatnonzero(refused):
+            cell = trail[-1][i].astype(np.int64)
+            free = sum(1 for d in DELTAS[1:] if _free(env.grid, cell + d))
+            out["refused_with_room"] += int(free >= 3)
             top = np.sort(q[i])
             out["refused"] += 1
             out["refused_is_argmax"] += int(q[i].argmax() == action[i])
@@ -135,8 +147,10 @@ def main(argv=None) -> int:
             if not r["passed"]:
                 rep = stuck_report(args.model, r["agents"], r["map"], args.cases, args.seed)
                 r["stuck"] = rep
-                print(f"\n{r['agents']} agents, {r['map']}x{r['map']}: at the last step of {rep['failed_cases']} failed cases, "
-                      f"{rep['refused']} refused moves; the refused move is the argmax in {rep['refused_is_argmax']} "
+                print(f"\n{r['agents']} agents, {r['map']}x{r['map']}: {rep['failed_cases']} failed cases, "
+                      f"{rep['fixed_point']} of them at a fixed point (no agent moved in the last 10 steps); at the last "
+                      f"step {rep['refused']} refused moves ({rep['refused_with_room']} with room to step aside); the "
+                      f"refused move is the argmax in {rep['refused_is_argmax']} "
                       f"(median lead {rep['median_lead']:.3f}); ODrM* labels it in {rep['label_is_refused_move']} of "
                       f"{rep['labelled']} labelled")
     if args.json:
