@@ -8,7 +8,7 @@ import json
 import pytest
 
 from fleet_helpers import GraphProbe, env_for, robot_model
-from test_fleet import ROBOT_TOPIC, graph_of
+from test_fleet import OWN_TOPICS, ROBOT_TOPIC, node_graph
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.filterwarnings("ignore::DeprecationWarning")]
 
@@ -34,10 +34,8 @@ def test_64_robots_in_containers_use_only_their_own_topics(tmp_path, domain_id, 
     graph = {}
     try:
         for i in range(N):
-            for name in ("policy_node", "drive_executor"):
-                graph[(name, i)] = probe.spin_until(
-                    lambda: (g := graph_of(probe, name, f"/robot_{i}")) and g["pubs"] and g["subs"] and g,
-                    timeout=60.0, what=f"{name} of robot {i} on the graph")
+            for name in OWN_TOPICS:
+                graph[(name, i)] = node_graph(probe, name, i, timeout=60.0)
         code = group.procs["world"].wait(timeout=180)
     finally:
         probe.close()

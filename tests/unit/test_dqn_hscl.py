@@ -226,3 +226,19 @@ def test_greedy_until_stuck_explores_only_after_a_fixed_point():
     assert (acts[3:] != [4, 3]).any()  # exploration from the fixed point on
     steps, _ = play_episode(push, env, 1.0, np.random.default_rng(1), greedy_until_stuck=0)
     assert (np.stack(steps["action"])[:3] != [4, 3]).any()  # plain epsilon-greedy from the first step
+
+
+def test_compare_and_failure_modes_evaluate_a_model_in_its_last_action_mode(tmp_path):
+    """scripts/compare_models and scripts/failure_modes load a model and hand the network to the harness: the
+    model file's last-action mode must come with it (they once played every model in 'requested')."""
+    from mapf_policy.action_selection import PAPER_RULE
+    from mapf_policy.model_io import load_model, save_model
+    from mapf_policy.train.compare import policy_solver
+    from mapf_policy.train.failures import _Recorder
+
+    path = tmp_path / "m.pt"
+    save_model(path, QNetwork(NetworkConfig(dueling=True)), NetworkConfig(dueling=True), {"last_action": "executed"})
+    net, _, meta = load_model(path)
+    solver = policy_solver(net, path, PAPER_RULE, 0, meta)
+    assert solver.last_action == "executed" and _Recorder(solver).last_action == "executed"
+    assert policy_solver(net, path, PAPER_RULE, 0).last_action == "requested"  # no metadata: the first design's

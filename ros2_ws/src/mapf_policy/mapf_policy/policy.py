@@ -24,12 +24,14 @@ from mapf_policy.network import QNetwork
 
 
 class Policy:
-    """Wraps a QNetwork for inference. `model` is a model file path or a QNetwork."""
+    """Wraps a QNetwork for inference. `model` is a model file path or a QNetwork; with a QNetwork, `meta` is its
+    file's metadata (load_model's third value), which says, for example, the last-action mode it was trained with."""
 
     def __init__(self, model, num_threads: int | None = 1, device: str = "cpu",
-                 rule: ActionRule | None = None, seed: int | None = 0, per_agent_seeds: bool = False):
+                 rule: ActionRule | None = None, seed: int | None = 0, per_agent_seeds: bool = False,
+                 meta: dict | None = None):
         if isinstance(model, QNetwork):
-            self.net, self.cfg, self.meta = model, model.cfg, {}
+            self.net, self.cfg, self.meta = model, model.cfg, dict(meta or {})
         elif isinstance(model, (str, Path)):
             self.net, self.cfg, self.meta = load_model(model)
         else:

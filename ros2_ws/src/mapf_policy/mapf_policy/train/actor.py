@@ -97,11 +97,12 @@ def validation_instances(cfg: TrainConfig) -> list:
 
 
 def evaluate_by_size(net: QNetwork | InferenceNet, instances: list, fov_size: int, max_steps: int, progress: bool = False,
-                     desc: str = "") -> dict:
-    """Greedy runs: {team size (str): success_rate, average_step (a failure counts max_steps), successes, cases}."""
+                     desc: str = "", last_action: str = "requested") -> dict:
+    """Greedy runs: {team size (str): success_rate, average_step (a failure counts max_steps), successes, cases}.
+    `last_action`: the observation's last-action mode the model was trained with (MapfEnv)."""
     outcomes = []
     for inst in tqdm(instances, desc=desc, unit="case", disable=not progress):
-        env = MapfEnv(inst.grid, inst.starts, inst.goals, fov_size=fov_size, max_steps=max_steps)
+        env = MapfEnv(inst.grid, inst.starts, inst.goals, fov_size=fov_size, max_steps=max_steps, last_action=last_action)
         _, stats = run_episode(net, env, 0.0, np.random.default_rng(0), record=False)
         outcomes.append((inst.n_agents, stats["success"], stats["steps"]))
     return summarize_by_size(outcomes)

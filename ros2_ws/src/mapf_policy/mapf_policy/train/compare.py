@@ -33,15 +33,18 @@ def held_out_cases(sizes, cases: int, seed: int, map_size: int, density: float) 
     return generated_cases(seed, COMPARE_STREAM, sizes, cases, map_size, density)
 
 
-def policy_solver(net: QNetwork, path, rule: ActionRule, sample_seed: int = 0) -> HsclSolver:
-    """The evaluation solver of a loaded model under `rule`, as `scripts/evaluate --solver hscl` builds it."""
-    return HsclSolver("hscl", Policy(net, num_threads=None, rule=rule, seed=sample_seed), sample_seed, Path(path))
+def policy_solver(net: QNetwork, path, rule: ActionRule, sample_seed: int = 0, meta: dict | None = None) -> HsclSolver:
+    """The evaluation solver of a loaded model under `rule`, as `scripts/evaluate --solver hscl` builds it. `meta`
+    (the model file's metadata) carries the last-action mode the model was trained with; without it the solver
+    assumes the first design's 'requested'."""
+    policy = Policy(net, num_threads=None, rule=rule, seed=sample_seed, meta=meta)
+    return HsclSolver("hscl", policy, sample_seed, Path(path))
 
 
 def evaluate_with_rule(net: QNetwork, path, instances: list, max_steps: int, rule: ActionRule,
-                       sample_seed: int, progress: bool) -> dict:
+                       sample_seed: int, progress: bool, meta: dict | None = None) -> dict:
     """Like evaluate_by_size, with actions chosen by `rule` through the evaluation solver (same dict layout)."""
-    solver = policy_solver(net, path, rule, sample_seed)
+    solver = policy_solver(net, path, rule, sample_seed, meta)
     desc = Path(path).parent.name + "/" + Path(path).name
     outcomes = []
     for k, inst in enumerate(tqdm(instances, desc=desc, unit="case", disable=not progress)):
@@ -57,12 +60,13 @@ def compare(paths, sizes, cases: int, seed: int = 0, map_size: int = 40, density
     instances = held_out_cases(sizes, cases, seed, map_size, density)
     out = {}
     for path in paths:
-        net, ncfg, _ = load_model(path)  # raises a clear error for a missing, corrupt or foreign file
+        net, ncfg, meta = load_model(path)  # raises a clear error for a missing, corrupt or foreign file
         if rule != PAPER_RULE:
-            out[str(path)] = evaluate_with_rule(net, path, instances, max_steps, rule, sample_seed, progress)
+            out[str(path)] = evaluate_with_rule(net, path, instances, max_steps, rule, sample_seed, progress, meta)
             continue
         out[str(path)] = evaluate_by_size(InferenceNet(net.eval()), instances, ncfg.fov_size, max_steps, progress,
-                                          desc=Path(path).parent.name + "/" + Path(path).name)
+                                          desc=Path(path).parent.name + "/" + Path(path).name,
+                                          last_action=meta.get("last_action", "requested"))
     return out
 
 

@@ -193,6 +193,8 @@ class _Recorder:
 
     def __init__(self, solver):
         self.solver, self.actions = solver, []
+        # run_case builds the env with the solver's last-action mode (the model's; planners have none)
+        self.last_action = getattr(solver, "last_action", "requested")
 
     def reset(self, env) -> None:
         self.actions = []
@@ -340,8 +342,8 @@ def main(argv=None) -> int:
     instances = held_out_cases(args.sizes, args.cases, args.seed, args.map_size, args.density)
     try:
         rule = rule_from_args(args)
-        net, _, _ = load_model(args.model)  # a clear error for a missing, corrupt or foreign file
-        solvers = {str(args.model): policy_solver(net, args.model, rule, args.sample_seed)}
+        net, _, meta = load_model(args.model)  # a clear error for a missing, corrupt or foreign file
+        solvers = {str(args.model): policy_solver(net, args.model, rule, args.sample_seed, meta)}
         if args.expert:
             solvers[EXPERT_LABEL] = expert_solver(args.expert_time_limit)
         traces = {label: run(solver, instances, args.max_steps, args.window, progress=not args.no_progress,
