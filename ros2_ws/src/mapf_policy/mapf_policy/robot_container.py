@@ -29,7 +29,7 @@ import yaml  # noqa: E402
 from rclpy.executors import ExternalShutdownException  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
-from mapf_world.node_main import REFUSALS  # noqa: E402
+from mapf_world.node_main import REFUSALS, dump_stacks_on_signal  # noqa: E402
 
 NODE_KINDS = ("policy", "drive")
 
@@ -84,6 +84,10 @@ def main(argv=None) -> int:
     ap.add_argument("--policy-param", action="append", default=[], metavar="NAME:=VALUE")
     ap.add_argument("--drive-param", action="append", default=[], metavar="NAME:=VALUE")
     args = ap.parse_args(own)
+    # A container that does not stop on SIGINT/SIGTERM prints its threads' stacks on ProcessGroup.stop's
+    # SIGUSR1 (as single nodes do, node_main.create_node) instead of dying by it (a 32-drive container did not
+    # stop once in a fresh-clone test run, exit -10; where it hung is unknown).
+    dump_stacks_on_signal()
     rclpy.init(args=["robot_container"] + ros_args)
     nodes = []
     try:
