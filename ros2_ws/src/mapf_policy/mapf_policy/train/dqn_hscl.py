@@ -250,7 +250,7 @@ def play_episode(forward, env: MapfEnv, epsilon: float, rng, oracle=None, budget
             actions = q.argmax(axis=1)
         explore = rng.random(env.n_agents) < eps_now
         actions[explore] = rng.integers(0, 5, int(explore.sum()))
-        before = env.positions.copy()
+        before = env.positions  # a copy
         obs, reward, terminated, truncated, info = env.step(actions)
         still = still + 1 if np.array_equal(before, env.positions) else 0
         if greedy_until_stuck > 0 and still >= greedy_until_stuck:

@@ -21,12 +21,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from mapf_policy.action_selection import obstacle_moves
 from mapf_policy.inference import InferenceNet
 from mapf_policy.model_io import load_model
 from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
 from mapf_policy.train.dqn_hscl import greedy_outcomes, play_episode
 from mapf_world.env import MapfEnv
-from mapf_world.grid import DELTAS
 
 # rung -> (what, [(agents, map side, success bar)])
 RUNGS = {
@@ -63,10 +63,6 @@ def run_rung(path, rung: int, cases: int, seed: int = 0, density: float = 0.3, m
     return rows
 
 
-def _free(grid: np.ndarray, cell: np.ndarray) -> bool:
-    return 0 <= cell[0] < grid.shape[0] and 0 <= cell[1] < grid.shape[1] and grid[cell[0], cell[1]] == 0
-
-
 def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, density: float = 0.3,
                  max_steps: int = 256) -> dict:
     """Where greedy failures stand at their last step: agents whose move was refused, whether that move is
@@ -97,10 +93,9 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
             label = make_oracle("odrmstar", env.grid, env.goals, env.dist, 10.0, 2.0).actions(before)
         except ExpertFailed:
             label = None
+        free = 4 - obstacle_moves(obs["fov"]).sum(axis=1)  # free neighbour cells of each agent
         for i in np.flatnonzero(refused):
-            cell = trail[-1][i].astype(np.int64)
-            free = sum(1 for d in DELTAS[1:] if _free(env.grid, cell + d))
-            out["refused_with_room"] += int(free >= 3)
+            out["refused_with_room"] += int(free[i] >= 3)
             top = np.sort(q[i])
             out["refused"] += 1
             out["refused_is_argmax"] += int(q[i].argmax() == action[i])
