@@ -10,7 +10,7 @@ import signal
 import time
 from pathlib import Path
 
-from mapf_world.fleet_launch import claim_domain_id  # noqa: F401 (the tests' fixtures claim through it)
+from mapf_world.fleet_launch import claim_domain_id, fleet_env  # noqa: F401 (the tests' fixtures claim through it)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 TRAINED_MODEL = REPO_ROOT / "models" / "hscl.pt"
@@ -22,9 +22,7 @@ SMALL_SCEN = DATA / "fleet_small.scen"
 
 
 def env_for(domain: int) -> dict:
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
-    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    return env
+    return fleet_env(domain)
 
 
 def robot_model(model: Path, out: Path) -> Path:

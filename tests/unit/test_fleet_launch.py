@@ -83,3 +83,13 @@ def test_render_png_and_gif(tmp_path):
         render_png(tmp_path / "x.png", grid, positions[0], goals)
     with pytest.raises(ValueError, match="goals must be"):
         render_png(tmp_path / "x.png", grid, positions, goals[:1])
+
+
+def test_fleet_env_sets_the_domain_and_keeps_the_callers_choices():
+    from mapf_world.fleet_launch import FLEET_ENV_DEFAULTS, fleet_env
+    env = fleet_env(117, base={"PATH": "/bin", "ROS_DOMAIN_ID": "3"})
+    assert env["ROS_DOMAIN_ID"] == "117" and env["PATH"] == "/bin"
+    assert env["FASTDDS_BUILTIN_TRANSPORTS"] == "UDPv4" and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    assert set(FLEET_ENV_DEFAULTS) == {"FASTDDS_BUILTIN_TRANSPORTS", "ROS_AUTOMATIC_DISCOVERY_RANGE"}
+    chosen = fleet_env(5, base={"FASTDDS_BUILTIN_TRANSPORTS": "DEFAULT", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"})
+    assert chosen["FASTDDS_BUILTIN_TRANSPORTS"] == "DEFAULT" and chosen["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"

@@ -81,8 +81,8 @@ def first_actions(cmd: list, robots: list[int], domain: int, log: Path) -> tuple
     from mapf_msgs.msg import AgentAction, AgentObservation
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
-    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    from mapf_world.fleet_launch import fleet_env
+    env = fleet_env(domain)
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain)
     node = rclpy.create_node("bench_probe", context=context)

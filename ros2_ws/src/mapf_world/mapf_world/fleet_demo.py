@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from mapf_world.fleet_drill import Drill, parse_ids
-from mapf_world.fleet_launch import ProcessGroup, executable, node_command, param_value
+from mapf_world.fleet_launch import ProcessGroup, executable, fleet_env, node_command, param_value
 
 
 @dataclass
@@ -247,8 +247,7 @@ def run(cfg: DemoConfig) -> int:
     out = Path(cfg.out) if cfg.out else root / "runs" / "fleet" / time.strftime("%Y%m%d-%H%M%S")
     out.mkdir(parents=True, exist_ok=True)
     domain = cfg.domain_id if cfg.domain_id >= 0 else int(os.environ.get("ROS_DOMAIN_ID", 1 + os.getpid() % 100))
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
-    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env = fleet_env(domain)
     (out / "config.json").write_text(json.dumps(asdict(cfg) | {"domain_id": domain, "model": str(model),
                                                                "policy": policy_params}, indent=1) + "\n")
     mcap, summary_path = out / "fleet.mcap", out / "summary.json"

@@ -41,6 +41,24 @@ def claim_domain_id(from_top: bool = False):
     raise RuntimeError(f"no free ROS_DOMAIN_ID in {DOMAIN_IDS.start}..{DOMAIN_IDS.stop - 1}")
 
 
+# The environment every fleet process gets (see fleet_env). Discovery stays on this host, and Fast DDS sends over
+# UDP on the loopback instead of its shared-memory transport: with shared memory (Fast DDS 2.14, the PyPI wheels),
+# a subscription sometimes matched a publisher process and then never received one of its messages (two
+# fresh-clone CI runs recorded no odom and cmd_vel of one robot while the world received them), a failure
+# Fast DDS reports for shared-memory ports after processes are killed or stall under load. A caller's own
+# setting of either variable wins.
+FLEET_ENV_DEFAULTS = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
+
+
+def fleet_env(domain: int, base: Optional[Dict[str, str]] = None) -> Dict[str, str]:
+    """The environment of a fleet process on ROS_DOMAIN_ID `domain`: `base` (default os.environ) plus
+    FLEET_ENV_DEFAULTS where `base` does not set them."""
+    env = dict(os.environ if base is None else base, ROS_DOMAIN_ID=str(domain))
+    for key, value in FLEET_ENV_DEFAULTS.items():
+        env.setdefault(key, value)
+    return env
+
+
 def executable(package: str, name: str) -> Path:
     """install/<package>/lib/<package>/<name>; ValueError when it is not there."""
     from ament_index_python.packages import PackageNotFoundError, get_package_prefix

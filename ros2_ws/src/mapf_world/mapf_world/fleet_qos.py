@@ -15,7 +15,7 @@ import math
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 # Seconds of samples a high-rate publisher keeps for the reliable protocol to resend (see above).
-REPAIR_WINDOW_S = 2.0
+REPAIR_WINDOW_S = 5.0
 # History of the per-step topics (observation, action, cell_move), and the least any publisher keeps.
 DEFAULT_DEPTH = 10
 # History of fleet/status (one message per step and phase change).

@@ -22,7 +22,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from mapf_world.fleet_launch import ProcessGroup, claim_domain_id, node_command
+from mapf_world.fleet_launch import ProcessGroup, claim_domain_id, fleet_env, node_command
 
 
 @dataclass
@@ -82,8 +82,7 @@ def run(cfg: SoakConfig, progress=None) -> dict:
     out = Path(cfg.out or f"runs/soak/{time.strftime('%Y%m%d-%H%M%S')}")
     (out / "episodes").mkdir(parents=True, exist_ok=True)
     domain, lock = claim_domain_id(from_top=True)
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
-    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env = fleet_env(domain)
     group = ProcessGroup(out / "logs", env)
     mcap = out / "soak.mcap"
     robots = [f"policy_{i}" for i in range(cfg.robots)] + [f"drive_{i}" for i in range(cfg.robots)]
