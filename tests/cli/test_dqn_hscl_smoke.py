@@ -75,6 +75,8 @@ def test_ladder_reports_a_rung_and_fails_an_untrained_model(repo_root, tmp_path)
         assert stuck["failed_cases"] == 5 - rows[0]["successes"] and "refused moves" in out.stdout
         assert 0 <= stuck["refused_is_argmax"] <= stuck["refused"] and stuck["label_is_refused_move"] <= stuck["labelled"]
         assert stuck["fixed_point"] <= stuck["failed_cases"] and stuck["refused_with_room"] <= stuck["refused"]
+        assert stuck["blocker_on_goal"] <= stuck["blockers"] and stuck["blocker_label_moves"] <= stuck["blockers"]
+        assert sum(stuck["blocker_label_rank_counts"]) == stuck["blocker_label_moves"] and "pushed into" in out.stdout
     missing = subprocess.run([str(repo_root / "scripts" / "ladder"), str(tmp_path / "nope.pt")], capture_output=True,
                              text=True, timeout=60)
     assert missing.returncode == 2 and "does not exist" in missing.stderr

@@ -17,7 +17,8 @@ def _steps(rewards, n_agents=1, l=9):
     rewards = np.asarray(rewards, dtype=np.float32).reshape(len(rewards), n_agents)
     t_len = len(rewards)
     obs = [{"fov": np.zeros((n_agents, 6, l, l), np.float32), "last_action": np.eye(5, dtype=np.float32)[[t % 5] * n_agents],
-            "position": np.full((n_agents, 2), t, np.float32)} for t in range(t_len + 1)]
+            "position": np.full((n_agents, 2), t, np.float32), "still": np.full(n_agents, 10 * t)}
+           for t in range(t_len + 1)]
     return {"obs": obs, "action": [np.ones(n_agents, np.int64)] * t_len, "reward": list(rewards),
             "expert": [np.full(n_agents, 2)] * t_len, "failed": [np.zeros(n_agents, bool)] * t_len}
 
@@ -242,3 +243,70 @@ def test_compare_and_failure_modes_evaluate_a_model_in_its_last_action_mode(tmp_
     solver = policy_solver(net, path, PAPER_RULE, 0, meta)
     assert solver.last_action == "executed" and _Recorder(solver).last_action == "executed"
     assert policy_solver(net, path, PAPER_RULE, 0).last_action == "requested"  # no metadata: the first design's
+
+
+def test_rows_carry_the_still_counts_of_the_state_and_of_the_bootstrap_state():
+    rows = episode_rows(_steps([-1, -2, -3]), terminated=False, gamma=0.9, n_step=2)
+    assert rows["still"].tolist() == [0, 10, 20]
+    assert rows["next_still"].tolist() == [20, 30, 30]  # obs[t + 2], cut at the end
+
+
+def test_env_counts_the_steps_each_agent_stands_on_its_cell():
+    grid = np.zeros((3, 3), np.uint8)
+    env = MapfEnv(grid, np.array([[1, 0], [1, 1]]), np.array([[0, 0], [2, 1]]), max_steps=12)
+    obs, _ = env.reset()
+    assert obs["still"].tolist() == [0, 0]
+    obs, *_ = env.step([4, 0])  # agent 0 pushes into agent 1 (refused), agent 1 stays
+    assert obs["still"].tolist() == [1, 1] and obs["refused_run"].tolist() == [1, 0]
+    obs, *_ = env.step([4, 0])  # again
+    assert obs["still"].tolist() == [2, 2] and obs["refused_run"].tolist() == [2, 0]
+    obs, *_ = env.step([1, 0])  # agent 0 moves up, agent 1 stays again
+    assert obs["still"].tolist() == [0, 3] and obs["refused_run"].tolist() == [0, 0]
+    obs, _ = env.reset()
+    assert obs["still"].tolist() == [0, 0] and obs["refused_run"].tolist() == [0, 0]
+
+
+def test_env_counts_the_steps_in_contact_with_the_same_unmoved_neighbours():
+    grid = np.zeros((4, 4), np.uint8)
+    env = MapfEnv(grid, np.array([[1, 0], [1, 1], [3, 3]]), np.array([[0, 0], [2, 1], [3, 2]]), max_steps=12)
+    obs, _ = env.reset()
+    assert obs["contact_run"].tolist() == [0, 0, 0]
+    obs, *_ = env.step([4, 0, 0])  # 0 pushes into 1 (refused); both stay side by side; 2 alone
+    assert obs["contact_run"].tolist() == [1, 1, 0]
+    obs, *_ = env.step([0, 0, 0])
+    assert obs["contact_run"].tolist() == [2, 2, 0]
+    obs, *_ = env.step([1, 0, 0])  # 0 moves away: both counts end
+    assert obs["contact_run"].tolist() == [0, 0, 0]
+
+
+def test_a_network_with_the_still_input_reads_it_and_one_without_refuses_it():
+    from mapf_policy.inference import InferenceNet
+    from mapf_policy.network import network_inputs, still_onehot
+
+    assert still_onehot(np.array([0, 2, 9]), 4).argmax(dim=1).tolist() == [0, 2, 3]  # 3 or more: the last bin
+    with pytest.raises(ValueError, match="counts >= 0"):
+        still_onehot(np.array([-1]), 4)
+    grid = np.zeros((5, 5), np.uint8)
+    env = MapfEnv(grid, np.array([[0, 0], [2, 2]]), np.array([[4, 4], [0, 4]]))
+    obs, _ = env.reset()
+    torch.manual_seed(0)
+    net = QNetwork(NetworkConfig(dueling=True, still_bins=4)).eval()
+    inputs = network_inputs(obs, net.cfg)
+    assert len(inputs) == 4 and inputs[3].shape == (2, 4)
+    q0 = net(*inputs)
+    q3 = net(*inputs[:3], still_onehot(np.array([3, 3]), 4))
+    assert not torch.allclose(q0, q3)  # the counts change the Q-values
+    torch.testing.assert_close(InferenceNet(net)(*inputs), q0, rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="still input"):
+        net(*inputs[:3])
+    plain = QNetwork(NetworkConfig(dueling=True)).eval()
+    with pytest.raises(ValueError, match="no still input"):
+        plain(*inputs)
+    assert len(network_inputs(obs, plain.cfg)) == 3
+    refused = QNetwork(NetworkConfig(dueling=True, still_bins=4, still_count="refused")).eval()
+    assert torch.equal(network_inputs(obs | {"refused_run": np.array([5, 1])}, refused.cfg)[3].argmax(dim=1),
+                       torch.tensor([3, 1]))
+    with pytest.raises(ValueError, match="still_count"):
+        NetworkConfig(still_bins=4, still_count="moves").validate()
+    steps, _ = play_episode(InferenceNet(net), env, 0.0, np.random.default_rng(0))
+    assert len(steps["action"]) >= 1

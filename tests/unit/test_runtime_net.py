@@ -145,3 +145,10 @@ def test_the_runtime_imports_neither_torch_nor_training_code():
             "print(bad); sys.exit(1 if bad else 0)")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_a_model_with_the_still_input_is_refused_by_the_robot_runtime_with_a_reason(tmp_path):
+    cfg = NetworkConfig(dueling=True, still_bins=8)
+    net = QNetwork(cfg)
+    with pytest.raises(ValueError, match="does not run networks with the still input"):
+        RuntimeNet(cfg, {k: v.numpy() for k, v in net.state_dict().items()})

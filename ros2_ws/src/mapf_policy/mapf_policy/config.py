@@ -12,6 +12,8 @@ from dataclasses import dataclass
 # Orders in which the expert's oracle hands the agents to ODrM* (TrainConfig.expert_order); what each
 # means and why it matters: mapf_policy/train/expert.py, agent_order.
 EXPERT_ORDERS = ("index", "reversed", "position")
+# NetworkConfig.still_count -> the MapfEnv observation key it reads.
+STILL_KEYS = {"cell": "still", "refused": "refused_run", "contact": "contact_run"}
 
 
 def _from_dict(cls, data: dict, what: str):
@@ -72,6 +74,18 @@ class NetworkConfig:
     """Dueling split of the output (second design, models/README.md): Q = V + A - mean(A), with one extra
     FC 300 -> 1 for V (301 parameters). HSCL then acts on the advantage A and the DQN fits the level through V.
     False: the paper's single FC 300 -> 5 (every model before the second design)."""
+    still_bins: int = 0
+    """Beyond the paper: an input of how many steps the agent has stood on the same cell (0 after a move),
+    one-hot in this many bins, the last meaning "this many minus one or more" (still_onehot), through an
+    FC still_bins -> still_features. A memoryless greedy team whose cells do not change sees the same
+    observations and repeats the same actions for ever (the fixed points of issue 20); with this input the
+    observations change while it waits. 0: no such input (the paper's network, every earlier model)."""
+    still_features: int = 64
+    """Width of the fully connected layer applied to the still input (when still_bins > 0)."""
+    still_count: str = "cell"
+    """What the still input counts (MapfEnv): 'cell', the steps the agent has stood on the same cell (observation
+    key 'still'), 'refused', its consecutive refused moves (key 'refused_run'; 0 after a stay or a move), or
+    'contact', the steps it has stood still with the same neighbour cells held by agents (key 'contact_run')."""
 
     def validate(self) -> None:
         if self.fov_size < 9 or self.fov_size % 2 == 0:
@@ -91,6 +105,11 @@ class NetworkConfig:
             raise ValueError(f"position_scale must be > 0, got {self.position_scale}")
         if self.n_actions != 5:
             raise ValueError(f"n_actions must be 5, got {self.n_actions}")
+        if self.still_count not in STILL_KEYS:
+            raise ValueError(f"still_count must be one of {tuple(STILL_KEYS)}, got {self.still_count!r}")
+        if self.still_bins < 0 or self.still_bins == 1 or self.still_features < 1:
+            raise ValueError(f"still_bins must be 0 (no input) or >= 2, and still_features >= 1; got "
+                             f"{self.still_bins}, {self.still_features}")
 
     def asdict(self) -> dict:
         return dataclasses.asdict(self)

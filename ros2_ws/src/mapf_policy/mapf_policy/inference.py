@@ -162,18 +162,20 @@ class FastForward:
         o = torch.bmm(torch.matmul(values, flat), beta_t.transpose(1, 2))  # o[:, j] = sum_i beta_ji h(x_i)
         return (flat + self.net.attention.eta * o).transpose(1, 2).reshape(b, hgt, wid, c)
 
-    def _q(self, weights: tuple, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
-        self.net.check_inputs(fov, last_action, position)
+    def _q(self, weights: tuple, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor,
+           still: torch.Tensor | None = None) -> torch.Tensor:
+        self.net.check_inputs(fov, last_action, position, still)
         attention, layers = weights
         x = self._attention(fov, *attention) if attention is not None else fov.permute(0, 2, 3, 1)
         winograd = self.winograd_min_batch is not None and fov.shape[0] >= self.winograd_min_batch
         for layer in layers:
             x = layer(x, winograd)
-        return self.net.head(x.permute(0, 3, 1, 2), last_action, position)  # NCHW view for CBAM
+        return self.net.head(x.permute(0, 3, 1, 2), last_action, position, still)  # NCHW view for CBAM
 
-    def __call__(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
+    def __call__(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor,
+                 still: torch.Tensor | None = None) -> torch.Tensor:
         """(B, 5) Q-values; the inputs' shapes are checked as by QNetwork.forward."""
-        return self._q(self.derived_weights(), fov, last_action, position)
+        return self._q(self.derived_weights(), fov, last_action, position, still)
 
 
 class InferenceNet(FastForward):
@@ -183,9 +185,10 @@ class InferenceNet(FastForward):
         super().__init__(net, winograd_min_batch)
         self._versions, self._weights = None, None
 
-    def __call__(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
+    def __call__(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor,
+                 still: torch.Tensor | None = None) -> torch.Tensor:
         with torch.inference_mode():
             versions = tuple((id(p), p._version) for p in self.net.parameters())
             if versions != self._versions:
                 self._weights, self._versions = self.derived_weights(), versions
-            return self._q(self._weights, fov, last_action, position)
+            return self._q(self._weights, fov, last_action, position, still)

@@ -19,11 +19,12 @@ With the trunk at 1x1, spatial attention gates the whole 256-vector with one lea
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
 
-from mapf_policy.config import NetworkConfig
+from mapf_policy.config import STILL_KEYS, NetworkConfig
 
 
 class SelfAttention(nn.Module):
@@ -94,13 +95,19 @@ class QNetwork(nn.Module):
         side = cfg.fov_size - 2 * len(cfg.conv_channels)
         self.action_fc = nn.Linear(cfg.n_actions, cfg.action_features)
         self.position_fc = nn.Linear(2, cfg.position_features)
-        self.hidden_fc = nn.Linear(c_in * side * side + cfg.action_features + cfg.position_features, cfg.hidden_features)
+        # The still input (cfg.still_bins > 0, beyond the paper; NetworkConfig.still_bins says why).
+        self.still_fc = nn.Linear(cfg.still_bins, cfg.still_features) if cfg.still_bins else None
+        extra = cfg.still_features if cfg.still_bins else 0
+        self.hidden_fc = nn.Linear(c_in * side * side + cfg.action_features + cfg.position_features + extra,
+                                   cfg.hidden_features)
         self.q_fc = nn.Linear(cfg.hidden_features, cfg.n_actions)
         # Dueling split (cfg.dueling): q_fc gives the advantages A, value_fc the state value V.
         self.value_fc = nn.Linear(cfg.hidden_features, 1) if cfg.dueling else None
 
-    def check_inputs(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor) -> None:
-        """ValueError naming the input whose shape does not fit (B, 6, l, l), (B, 5), (B, 2)."""
+    def check_inputs(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor,
+                     still: torch.Tensor | None = None) -> None:
+        """ValueError naming the input whose shape does not fit (B, 6, l, l), (B, 5), (B, 2), and (B, still_bins)
+        for a network with the still input (None otherwise)."""
         l, c, a = self.cfg.fov_size, self.cfg.in_channels, self.cfg.n_actions
         if fov.dim() != 4 or tuple(fov.shape[1:]) != (c, l, l):
             raise ValueError(f"fov must have shape (B, {c}, {l}, {l}), got {tuple(fov.shape)}")
@@ -109,13 +116,21 @@ class QNetwork(nn.Module):
             raise ValueError(f"last_action must have shape ({b}, {a}) (one-hot), got {tuple(last_action.shape)}")
         if tuple(position.shape) != (b, 2):
             raise ValueError(f"position must have shape ({b}, 2) (row, col), got {tuple(position.shape)}")
+        bins = self.cfg.still_bins
+        if bins and (still is None or tuple(still.shape) != (b, bins)):
+            raise ValueError(f"this network takes a still input of shape ({b}, {bins}) (one-hot, still_onehot), got "
+                             f"{None if still is None else tuple(still.shape)}")
+        if not bins and still is not None:
+            raise ValueError("this network has no still input (NetworkConfig.still_bins is 0), but one was given")
 
-    def forward(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
-        self.check_inputs(fov, last_action, position)
+    def forward(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor,
+                still: torch.Tensor | None = None) -> torch.Tensor:
+        self.check_inputs(fov, last_action, position, still)
         x = self.attention(fov) if self.attention is not None else fov
-        return self.head(self.trunk(x), last_action, position)
+        return self.head(self.trunk(x), last_action, position, still)
 
-    def head(self, x: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
+    def head(self, x: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor,
+             still: torch.Tensor | None = None) -> torch.Tensor:
         """Q-values from the trunk's output x (B, C, s, s): CBAM, then the fully connected layers.
 
         Shared with the inference path (inference.py), which computes the trunk differently."""
@@ -125,7 +140,10 @@ class QNetwork(nn.Module):
             x = self.spatial_attention(x)
         act = F.relu(self.action_fc(last_action))
         pos = F.relu(self.position_fc(position / self.cfg.position_scale))
-        z = torch.cat([x.flatten(1), act, pos], dim=1)
+        parts = [x.flatten(1), act, pos]
+        if self.still_fc is not None:
+            parts.append(F.relu(self.still_fc(still)))
+        z = torch.cat(parts, dim=1)
         hidden = F.relu(self.hidden_fc(z))
         if self.value_fc is None:
             return self.q_fc(hidden)
@@ -135,3 +153,24 @@ class QNetwork(nn.Module):
 
 def count_parameters(net: nn.Module) -> int:
     return sum(p.numel() for p in net.parameters())
+
+
+def still_onehot(still, bins: int) -> torch.Tensor:
+    """(B,) counts of steps on the same cell -> (B, bins) one-hot; counts of bins - 1 or more share the last bin
+    (a saturating feature by design: beyond it, how long the agent has waited makes no difference)."""
+    counts = torch.as_tensor(np.asarray(still), dtype=torch.long)
+    if counts.dim() != 1 or bool((counts < 0).any()):
+        raise ValueError(f"still must be a (B,) array of counts >= 0, got shape {tuple(counts.shape)}")
+    return torch.eye(bins)[counts.clamp(max=bins - 1)]
+
+
+def network_inputs(obs: dict, cfg: NetworkConfig) -> tuple:
+    """The network's inputs as float tensors from an observation dict of MapfEnv: (fov, last_action, position),
+    and the one-hot still input when the network takes it."""
+    inputs = tuple(torch.from_numpy(np.asarray(obs[k], dtype=np.float32)) for k in ("fov", "last_action", "position"))
+    if cfg.still_bins:
+        key = STILL_KEYS[cfg.still_count]
+        if key not in obs:
+            raise ValueError(f"this network takes a still input, but the observation has no {key!r} counts")
+        inputs += (still_onehot(obs[key], cfg.still_bins),)
+    return inputs

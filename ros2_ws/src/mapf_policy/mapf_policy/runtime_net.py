@@ -167,6 +167,9 @@ class RuntimeNet:
     """QNetwork's forward pass in numpy: `RuntimeNet.load(path)(fov, last_action, position) -> (B, 5)` float32."""
 
     def __init__(self, cfg: NetworkConfig, weights: dict, header: dict | None = None):
+        if cfg.still_bins:
+            raise ValueError("the robot runtime does not run networks with the still input (NetworkConfig.still_bins "
+                             f"= {cfg.still_bins}, an experiment of issue 20); run such a model with torch")
         check_weights(weights, cfg, "weights")
         self.cfg, self.header = cfg, dict(header or {})
         w = {k: np.asarray(v, dtype=np.float32) for k, v in weights.items()}

@@ -10,6 +10,13 @@ The observation's last action (`last_action`): "requested" (the action the agent
 grid rules refused the move; every model before the second design) or "executed" (what the agent did:
 stay when its move was refused). The paper says "the action performed by the agent at the last moment".
 With "requested", an agent whose move was refused often sees exactly the observation it saw before.
+
+The observation also counts, per agent, the steps it has stood on the same cell (`still`: 0 at the start
+and after a move, +1 for each step that leaves it where it was, refused moves included). Only networks
+built with NetworkConfig.still_bins > 0 read it, or one of two other counts: `refused_run`, its consecutive
+refused moves (0 after a move or a stay), and `contact_run`, the consecutive steps in which it stood still
+with the same non-empty set of cells next to it (4-neighbourhood) held by agents (0 when it moved, when that
+set changed or is empty). An agent can count all three from its own requests, positions and fields of view.
 """
 from __future__ import annotations
 
@@ -46,6 +53,9 @@ class MapfEnv:
         self._builder: ObservationBuilder | None = None
         self._positions = self._starts.copy()
         self._last_actions = np.zeros(len(self._starts), dtype=np.int64)
+        self._still = np.zeros(len(self._starts), dtype=np.int64)
+        self._refused_run = np.zeros(len(self._starts), dtype=np.int64)
+        self._contact_run = np.zeros(len(self._starts), dtype=np.int64)
         self._step = 0
         self._done = True  # until reset()
 
@@ -97,13 +107,19 @@ class MapfEnv:
         return np.all(self._positions == self._goals, axis=1)
 
     def observe(self) -> dict:
-        return self.observation_builder.build(self._positions, self._last_actions)
+        """fov, last_action, position (ObservationBuilder.build); still and refused_run, (N,) counts of steps on the
+        same cell and of consecutive refused moves."""
+        return self.observation_builder.build(self._positions, self._last_actions) | {
+            "still": self._still.copy(), "refused_run": self._refused_run.copy(), "contact_run": self._contact_run.copy()}
 
     # --- gymnasium-style API --------------------------------------------------------------------
     def reset(self) -> tuple[dict, dict]:
         """Back to the starts. The BFS runs on the first reset only (cached per instance)."""
         self._positions = self._starts.copy()
         self._last_actions = np.zeros(self.n_agents, dtype=np.int64)
+        self._still = np.zeros(self.n_agents, dtype=np.int64)
+        self._refused_run = np.zeros(self.n_agents, dtype=np.int64)
+        self._contact_run = np.zeros(self.n_agents, dtype=np.int64)
         self._step = 0
         on_goal = self.on_goal()
         # If every agent starts on its goal the case is solved in 0 steps: info["success"] is True
@@ -120,6 +136,12 @@ class MapfEnv:
         acts = check_actions(actions, self.n_agents)
         stayed_on_goal = (acts == STAY) & self.on_goal()
         new_pos, failed = resolve_moves(self._grid, self._positions, acts)
+        moved = np.any(new_pos != self._positions, axis=1)
+        self._still = np.where(moved, 0, self._still + 1)
+        self._refused_run = np.where(failed, self._refused_run + 1, 0)
+        before, after = _contacts(self._positions), _contacts(new_pos)
+        same = ~moved & np.all(before == after, axis=1) & after.any(axis=1)
+        self._contact_run = np.where(same, self._contact_run + 1, 0)
         self._positions = new_pos
         self._last_actions = np.where(failed, STAY, acts) if self.last_action_mode == "executed" else acts
         self._step += 1
@@ -136,3 +158,11 @@ class MapfEnv:
         self._done = terminated or truncated
         info = {"failed": failed, "on_goal": on_goal, "step": self._step, "success": success}
         return self.observe(), rewards, terminated, truncated, info
+
+
+def _contacts(positions: np.ndarray) -> np.ndarray:
+    """(N, 4) bool: which of each agent's four neighbour cells (up, down, left, right) another agent holds."""
+    offsets = np.array([[-1, 0], [1, 0], [0, -1], [0, 1]])
+    around = positions[:, None, :] + offsets[None]  # (N, 4, 2)
+    held = np.all(around[:, :, None, :] == positions[None, None, :, :], axis=3)  # (N, 4, N)
+    return held.any(axis=2)

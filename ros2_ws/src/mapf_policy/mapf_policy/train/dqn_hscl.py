@@ -40,11 +40,11 @@ import torch
 from torch.nn import functional as F
 from tqdm import tqdm
 
-from mapf_policy.config import ABLATIONS, EXPERT_ORDERS, NetworkConfig
+from mapf_policy.config import ABLATIONS, EXPERT_ORDERS, STILL_KEYS, NetworkConfig
 from mapf_policy.inference import FastForward, InferenceNet
 from mapf_policy.losses import expert_agreement, hscl_loss
 from mapf_policy.model_io import load_model, save_model
-from mapf_policy.network import QNetwork
+from mapf_policy.network import QNetwork, network_inputs, still_onehot
 from mapf_policy.train.demos import ACTOR_STREAM, VALID_STREAM, generated_cases, instance_rng
 from mapf_policy.train.expert import ExpertFailed, make_oracle
 from mapf_policy.train.log import CsvLog, read_csv, truncate_log
@@ -67,6 +67,12 @@ class Args:
     """Dueling split Q = V + A - mean(A), HSCL on A (False: the paper's single head, HSCL on Q)."""
     last_action: str = "executed"
     """Observation's last action: 'executed' (stay when the move was refused) or 'requested' (MapfEnv)."""
+    still_bins: int = 0
+    """Beyond the paper: the network also reads a count of the agent's own recent steps, one-hot in this many bins
+    (NetworkConfig.still_bins); 0: not (the paper's inputs)."""
+    still_count: str = "cell"
+    """What that count is (NetworkConfig.still_count): 'cell' (steps on the same cell), 'refused' (consecutive
+    refused moves) or 'contact' (steps standing still beside the same unmoved agents)."""
     total_steps: int = 20_000
     """Learner gradient steps of the whole run."""
     session_minutes: float = 0.0
@@ -175,6 +181,8 @@ class Args:
         need(self.variant in ("hscl",) + tuple(ABLATIONS), f"variant must be hscl or one of {tuple(ABLATIONS)}, got {self.variant!r}")
         need(self.last_action in LAST_ACTION_MODES, f"last_action must be one of {LAST_ACTION_MODES}, got {self.last_action!r}")
         need(self.stuck_steps >= 0, f"stuck_steps must be >= 0, got {self.stuck_steps}")
+        need(self.still_bins == 0 or self.still_bins >= 2, f"still_bins must be 0 or >= 2, got {self.still_bins}")
+        need(self.still_count in STILL_KEYS, f"still_count must be one of {tuple(STILL_KEYS)}, got {self.still_count!r}")
         for name in ("total_steps", "batch_size", "n_step", "target_update_every", "replay_capacity",
                      "max_episode_steps", "eval_cases", "log_every", "threads"):
             need(int(getattr(self, name)) >= 1, f"{name} must be >= 1, got {getattr(self, name)}")
@@ -195,7 +203,8 @@ class Args:
             parse_stage(s)
 
     def network_config(self) -> NetworkConfig:
-        return NetworkConfig(dueling=self.dueling, **ABLATIONS.get(self.variant, {}))
+        return NetworkConfig(dueling=self.dueling, still_bins=self.still_bins, still_count=self.still_count,
+                             **ABLATIONS.get(self.variant, {}))
 
 
 def parse_stage(text: str) -> tuple[int, int]:
@@ -215,6 +224,7 @@ ROW_SPECS = {  # one agent's n-step transition; fov values are 0/1
     "action": (np.int8, ()), "ret": (np.float32, ()), "boot_gamma": (np.float32, ()),
     "next_fov": (np.uint8, (6, 9, 9)), "next_last_action": (np.int8, ()), "next_position": (np.int16, (2,)),
     "expert": (np.int8, ()), "mc_return": (np.float32, ()), "refused": (np.bool_, ()), "solved": (np.bool_, ()),
+    "still": (np.int16, ()), "next_still": (np.int16, ()),  # steps on the same cell (MapfEnv), for still_bins > 0
 }
 
 
@@ -227,7 +237,9 @@ def play_episode(forward, env: MapfEnv, epsilon: float, rng, oracle=None, budget
     `greedy_until_stuck` k > 0, with probability 0 until the joint positions have stayed the same for k steps
     (a greedy deadlock) and `epsilon` from then on. With `oracle`,
     states are labelled until it fails or `budget` seconds are spent. Returns per-step arrays
-    (T steps, N agents; obs has T + 1 entries) and stats."""
+    (T steps, N agents; obs has T + 1 entries) and stats. The network's inputs follow `forward.cfg`
+    (network_inputs); a plain function stands for a network with the paper's inputs."""
+    cfg = getattr(forward, "cfg", NetworkConfig())
     obs, _ = env.reset()
     steps = {"obs": [obs], "action": [], "reward": [], "expert": [], "failed": []}
     spent, labelled, done, terminated = 0.0, 0, False, False
@@ -246,7 +258,7 @@ def play_episode(forward, env: MapfEnv, epsilon: float, rng, oracle=None, budget
             actions = expert.copy()
         else:
             with torch.inference_mode():
-                q = forward(*(torch.from_numpy(obs[k]) for k in ("fov", "last_action", "position"))).numpy()
+                q = forward(*network_inputs(obs, cfg)).numpy()
             actions = q.argmax(axis=1)
         explore = rng.random(env.n_agents) < eps_now
         actions[explore] = rng.integers(0, 5, int(explore.sum()))
@@ -275,11 +287,13 @@ def infeasible_labels(positions: np.ndarray, expert: np.ndarray) -> np.ndarray:
     return (expert > 0) & hit.any(axis=2) if t_len else np.zeros((0, positions.shape[1]), bool)
 
 
-def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasible_labels: bool = False) -> dict:
+def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasible_labels: bool = False,
+                 still_key: str = "still") -> dict:
     """Replay rows of every agent and step: n-step return, bootstrap state and discount, Monte Carlo return.
 
     Row (t, i): ret = sum_{k<m} gamma^k r[t+k, i] with m = min(n, T - t); bootstrap from obs[t + m] with
-    discount gamma^m, or 0 when the episode terminated at t + m = T. A time-limit end is no terminal state."""
+    discount gamma^m, or 0 when the episode terminated at t + m = T. A time-limit end is no terminal state.
+    Rows "still"/"next_still" hold the observation's count `still_key` (NetworkConfig.still_count)."""
     reward = np.stack(steps["reward"]).astype(np.float64)  # (T, N)
     t_len, n_agents = reward.shape
     mc = np.zeros_like(reward)
@@ -298,6 +312,7 @@ def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasi
     fov = np.stack([o["fov"] for o in obs]).astype(np.uint8)  # (T+1, N, 6, l, l)
     last = np.stack([o["last_action"].argmax(axis=1) for o in obs]).astype(np.int8)
     pos = np.stack([o["position"] for o in obs]).astype(np.int16)
+    still = np.stack([o[still_key] for o in obs]).astype(np.int16)
     nxt = np.arange(t_len) + m
     expert = np.stack(steps["expert"]).astype(np.int8)
     if feasible_labels:
@@ -311,6 +326,7 @@ def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasi
         "expert": flat(expert), "mc_return": flat(mc.astype(np.float32)),
         "refused": flat(np.stack(steps["failed"]).astype(bool)),
         "solved": np.full(t_len * n_agents, bool(terminated)),  # mc_return is a whole episode's return
+        "still": flat(still[:-1]), "next_still": flat(still[nxt]),
     }
 
 
@@ -347,7 +363,7 @@ class Replay:
         eye = torch.eye(5)
         b = {k: torch.from_numpy(v[idx]) for k, v in self.data.items()}
         t = {"action": b["action"].long(), "expert": b["expert"].long(), "refused": b["refused"], "solved": b["solved"],
-             "index": idx, "weight": weight}
+             "still": b["still"].long(), "next_still": b["next_still"].long(), "index": idx, "weight": weight}
         for k in ("ret", "boot_gamma", "mc_return"):
             t[k] = b[k]
         for pre in ("", "next_"):
@@ -472,7 +488,8 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             epsilon = 0.0 if greedy and not args.stuck_steps else eps_at(state["step"])
             steps, stats = play_episode(act_q, env, epsilon, rng, oracle, args.relabel_time_budget, drive,
                                         greedy_until_stuck=args.stuck_steps if greedy else 0)
-            rows = episode_rows(steps, stats["success"], args.gamma, args.n_step, args.feasible_labels)
+            rows = episode_rows(steps, stats["success"], args.gamma, args.n_step, args.feasible_labels,
+                                STILL_KEYS[args.still_count])
             replay.add(rows)
             state["episodes"] += 1
             window["rows"] += len(rows["action"])
@@ -484,10 +501,12 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             while owed >= 1.0 and state["step"] < args.total_steps and not stop["now"]:
                 owed -= 1.0
                 batch = replay.sample(args.batch_size, rng)
+                still = (still_onehot(batch["still"], args.still_bins),) if args.still_bins else ()
+                next_still = (still_onehot(batch["next_still"], args.still_bins),) if args.still_bins else ()
                 with torch.autocast("cpu", dtype=torch.bfloat16, enabled=args.bf16):
-                    q = online_q(batch["fov"], batch["last_action"], batch["position"]).float()
+                    q = online_q(batch["fov"], batch["last_action"], batch["position"], *still).float()
                 with torch.no_grad():
-                    next_q = target_q(batch["next_fov"], batch["next_last_action"], batch["next_position"])
+                    next_q = target_q(batch["next_fov"], batch["next_last_action"], batch["next_position"], *next_still)
                 l_dqn, l_hscl, td = losses(q, next_q, batch, args)
                 loss = args.dqn_weight * l_dqn + state["hscl_weight"] * l_hscl
                 state["step"] += 1

@@ -24,9 +24,11 @@ from tqdm import tqdm
 from mapf_policy.action_selection import obstacle_moves
 from mapf_policy.inference import InferenceNet
 from mapf_policy.model_io import load_model
+from mapf_policy.network import network_inputs
 from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
 from mapf_policy.train.dqn_hscl import greedy_outcomes, play_episode
 from mapf_world.env import MapfEnv
+from mapf_world.grid import DELTAS
 
 # rung -> (what, [(agents, map side, success bar)])
 RUNGS = {
@@ -70,13 +72,18 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
 
     A refused move repeated at a fixed point (the same observation each step) is a greedy deadlock.
     `fixed_point`: failed cases whose agents all stood still over the last 10 steps; `refused_with_room`: refused
-    agents with 3 or 4 free neighbour cells (room to step aside; 2 or fewer: a corridor or a dead end)."""
+    agents with 3 or 4 free neighbour cells (room to step aside; 2 or fewer: a corridor or a dead end).
+    The other side of a push: `blockers`, agents that chose to stay at the last step on a cell a refused agent
+    tried to enter; `blocker_on_goal` of them stand on their goal, `blocker_label_moves` of them ODrM* would
+    move (the joint plan has the blocker give way), `blocker_label_is_argmax_rank` sums the rank of that
+    labelled move in their Q-values (0: it is the argmax)."""
     from mapf_policy.train.expert import ExpertFailed, make_oracle
 
     net, _, meta = load_model(path)
     forward, mode = InferenceNet(net), model_last_action(meta)
     out = {"failed_cases": 0, "fixed_point": 0, "refused": 0, "refused_with_room": 0, "refused_is_argmax": 0,
-           "label_is_refused_move": 0, "labelled": 0, "lead": []}
+           "label_is_refused_move": 0, "labelled": 0, "blockers": 0, "blocker_on_goal": 0, "blocker_label_moves": 0,
+           "blocker_label_rank": [], "lead": []}
     for inst in generated_cases(seed, COMPARE_STREAM, [agents], cases, side, density):
         env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode)
         steps, stats = play_episode(forward, env, 0.0, np.random.default_rng(0))
@@ -87,13 +94,22 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
         out["fixed_point"] += int((trail == trail[-1]).all())
         obs, action, refused = steps["obs"][-2], steps["action"][-1], steps["failed"][-1]
         with torch.inference_mode():
-            q = forward(*(torch.from_numpy(obs[k]) for k in ("fov", "last_action", "position"))).numpy()
+            q = forward(*network_inputs(obs, forward.cfg)).numpy()
+        before = np.stack([o["position"] for o in steps["obs"]])[-2].astype(np.int64)
         try:
-            before = np.stack([o["position"] for o in steps["obs"]])[-2].astype(np.int64)
             label = make_oracle("odrmstar", env.grid, env.goals, env.dist, 10.0, 2.0).actions(before)
         except ExpertFailed:
             label = None
         free = 4 - obstacle_moves(obs["fov"]).sum(axis=1)  # free neighbour cells of each agent
+        wanted = {tuple(before[i] + DELTAS[action[i]]) for i in np.flatnonzero(refused)}  # cells pushed into
+        for j in np.flatnonzero(action == 0):
+            if tuple(before[j]) not in wanted:
+                continue
+            out["blockers"] += 1
+            out["blocker_on_goal"] += int((before[j] == env.goals[j]).all())
+            if label is not None and label[j] != 0:
+                out["blocker_label_moves"] += 1
+                out["blocker_label_rank"].append(int((q[j] > q[j][label[j]]).sum()))
         for i in np.flatnonzero(refused):
             out["refused_with_room"] += int(free[i] >= 3)
             top = np.sort(q[i])
@@ -104,6 +120,8 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
                 out["labelled"] += 1
                 out["label_is_refused_move"] += int(label[i] == action[i])
     out["median_lead"] = float(np.median(out.pop("lead"))) if out["refused"] else float("nan")
+    ranks = out.pop("blocker_label_rank")
+    out["blocker_label_rank_counts"] = [ranks.count(r) for r in range(5)]  # how often the label is 1st, 2nd, ...
     return out
 
 
@@ -147,7 +165,9 @@ def main(argv=None) -> int:
                       f"step {rep['refused']} refused moves ({rep['refused_with_room']} with room to step aside); the "
                       f"refused move is the argmax in {rep['refused_is_argmax']} "
                       f"(median lead {rep['median_lead']:.3f}); ODrM* labels it in {rep['label_is_refused_move']} of "
-                      f"{rep['labelled']} labelled")
+                      f"{rep['labelled']} labelled. {rep['blockers']} agents stayed on a cell pushed into "
+                      f"({rep['blocker_on_goal']} on their goal); ODrM* moves {rep['blocker_label_moves']} of them, its "
+                      f"move ranked 1st..5th in their Q-values {rep['blocker_label_rank_counts']} times")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0 if all(r["passed"] for r in rows) else 1
