@@ -22,6 +22,8 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import numpy as np
+
 from mapf_world.fleet_launch import ProcessGroup, claim_domain_id, fleet_env, node_command
 
 
@@ -44,7 +46,7 @@ class SoakConfig:
 
 def usage_row(group: ProcessGroup, name: str):
     u = group.usage(name)
-    return None if u is None else {"cpu_s": u.cpu_s, "rss_mb": u.rss_mb, "t": time.monotonic()}
+    return None if u is None else {"cpu_s": u.cpu_s, "rss_mb": u.rss_mb, "peak_rss_mb": u.peak_rss_mb, "t": time.monotonic()}
 
 
 class RssSeries:
@@ -138,7 +140,8 @@ def run(cfg: SoakConfig, progress=None) -> dict:
                 break
             s = json.loads(summary_path.read_text())
             episodes.append({"episode": e, "state": s["state"], "steps": s["steps"], "wall_s": s["wall_s"],
-                             "failed_moves": s["failed_moves"], "timeouts": s["timeouts"]})
+                             "failed_moves": s["failed_moves"], "timeouts": s["timeouts"],
+                             "world_peak_rss_mb": round(world_usage["peak_rss_mb"], 1) if world_usage else None})
             totals["steps"] += int(s["steps"])
             totals["episodes"] += 1
             totals["successes"] += s["state"] == "success"
@@ -190,7 +193,9 @@ def run(cfg: SoakConfig, progress=None) -> dict:
 def per_process(start: dict | None, end: dict, t0: float) -> dict:
     """{process: {rss_start_mb, rss_end_mb, rss_growth_pct, cpu_pct_start, cpu_pct_end}}: RSS after the warm-up
     and at the end; CPU (% of one core) over the warm-up and from the warm-up to the end. "world" is the
-    world node of the episode running at each moment (a new process per episode)."""
+    world node of the episode that ended last at each moment (a new process per episode); its figures are that
+    process's peak RSS (VmHWM at its last reading), since its RSS at the last reading depends on the moment
+    of its short life at which it was taken."""
     out = {}
     if start is None:
         return out
@@ -199,8 +204,9 @@ def per_process(start: dict | None, end: dict, t0: float) -> dict:
         if not s or not e:
             continue
         span = e["t"] - s["t"]
-        out[name] = {"rss_start_mb": round(s["rss_mb"], 1), "rss_end_mb": round(e["rss_mb"], 1),
-                     "rss_growth_pct": round(100.0 * (e["rss_mb"] - s["rss_mb"]) / s["rss_mb"], 2),
+        key = "peak_rss_mb" if name == "world" else "rss_mb"
+        out[name] = {"rss_start_mb": round(s[key], 1), "rss_end_mb": round(e[key], 1),
+                     "rss_growth_pct": round(100.0 * (e[key] - s[key]) / s[key], 2),
                      "cpu_pct_start": None if name == "world" else round(100.0 * s["cpu_s"] / (s["t"] - t0), 1),
                      "cpu_pct_end": None if name == "world" or span <= 0 else
                      round(100.0 * (e["cpu_s"] - s["cpu_s"]) / span, 1)}
@@ -233,6 +239,10 @@ def main(argv=None) -> int:
     for name, u in report["usage"].items():
         print(f"{name:<12} {u['rss_start_mb']:>12} {u['rss_end_mb']:>10} {u['rss_growth_pct']:>9} "
               f"{u['cpu_pct_start']!s:>11} {u['cpu_pct_end']!s:>9}")
+    peaks = [ep["world_peak_rss_mb"] for ep in report["episodes"] if ep.get("world_peak_rss_mb")]
+    if peaks:
+        print(f"world node peak RSS per episode (MB): min {min(peaks)}, median {float(np.median(peaks)):.1f}, "
+              f"max {max(peaks)} over {len(peaks)} episodes; first {peaks[0]}, last {peaks[-1]}")
     print("crashes: " + ("; ".join(report["crashes"]) if report["crashes"] else "none")
           + (f"; stopped early by {report['stopped_early']}" if report["stopped_early"] else ""))
     print(f"report: {out / 'soak.json'}")
