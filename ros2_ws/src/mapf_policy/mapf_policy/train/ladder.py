@@ -28,7 +28,7 @@ from mapf_policy.network import network_inputs
 from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
 from mapf_policy.train.dqn_hscl import greedy_outcomes, play_episode
 from mapf_world.env import MapfEnv
-from mapf_world.grid import DELTAS
+from mapf_world.grid import DELTAS, STAY
 
 # rung -> (what, [(agents, map side, success bar)])
 RUNGS = {
@@ -75,8 +75,8 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
     agents with 3 or 4 free neighbour cells (room to step aside; 2 or fewer: a corridor or a dead end).
     The other side of a push: `blockers`, agents that chose to stay at the last step on a cell a refused agent
     tried to enter; `blocker_on_goal` of them stand on their goal, `blocker_label_moves` of them ODrM* would
-    move (the joint plan has the blocker give way), `blocker_label_is_argmax_rank` sums the rank of that
-    labelled move in their Q-values (0: it is the argmax)."""
+    move (the joint plan has the blocker give way), and `blocker_label_rank_counts[r]` counts those whose
+    labelled move has rank r in their Q-values (0: it is the argmax)."""
     from mapf_policy.train.expert import ExpertFailed, make_oracle
 
     net, _, meta = load_model(path)
@@ -102,7 +102,7 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
             label = None
         free = 4 - obstacle_moves(obs["fov"]).sum(axis=1)  # free neighbour cells of each agent
         wanted = {tuple(before[i] + DELTAS[action[i]]) for i in np.flatnonzero(refused)}  # cells pushed into
-        for j in np.flatnonzero(action == 0):
+        for j in np.flatnonzero(action == STAY):
             if tuple(before[j]) not in wanted:
                 continue
             out["blockers"] += 1
