@@ -310,3 +310,14 @@ def test_a_network_with_the_still_input_reads_it_and_one_without_refuses_it():
         NetworkConfig(still_bins=4, still_count="moves").validate()
     steps, _ = play_episode(InferenceNet(net), env, 0.0, np.random.default_rng(0))
     assert len(steps["action"]) >= 1
+
+
+def test_double_dqn_values_the_online_argmax_with_the_target_network():
+    batch = {"action": torch.tensor([0]), "ret": torch.tensor([0.0]), "boot_gamma": torch.tensor([1.0]),
+             "expert": torch.tensor([-1]), "solved": torch.tensor([False]), "mc_return": torch.tensor([0.0])}
+    q = torch.zeros(1, 5)
+    next_target = torch.tensor([[1.0, 5.0, 0.0, 0.0, 0.0]])
+    next_online = torch.tensor([[3.0, 2.0, 0.0, 0.0, 0.0]])  # the online net prefers action 0
+    _, _, td_max = losses(q, next_target, batch, Args())
+    _, _, td_double = losses(q, next_target, batch, Args(double_dqn=True), next_online)
+    assert td_max.item() == 5.0 and td_double.item() == 1.0
