@@ -5,12 +5,11 @@ Domain ids are claimed with lock files in 100..229, so tests of concurrent sessi
 """
 from __future__ import annotations
 
-import os
 import signal
 import time
 from pathlib import Path
 
-from mapf_world.fleet_launch import claim_domain_id, fleet_env  # noqa: F401 (the tests' fixtures claim through it)
+from mapf_world.fleet_launch import claim_domain_id, fleet_env  # noqa: F401 (the tests' fixtures and modules use them)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 TRAINED_MODEL = REPO_ROOT / "models" / "hscl.pt"
@@ -19,10 +18,6 @@ DATA = Path(__file__).resolve().parent / "data"
 # Robots of the small test map: rows 0, 2 and 4 are free corridors, so each robot has a direct path.
 SMALL_MAP = DATA / "fleet_small.map"
 SMALL_SCEN = DATA / "fleet_small.scen"
-
-
-def env_for(domain: int) -> dict:
-    return fleet_env(domain)
 
 
 def robot_model(model: Path, out: Path) -> Path:
@@ -52,7 +47,7 @@ class Fleet:
         self.n = n_robots
         self.mcap = self.out / "fleet.mcap"
         self.summary = self.out / "summary.json"
-        self.group = ProcessGroup(self.out / "logs", env_for(domain))
+        self.group = ProcessGroup(self.out / "logs", fleet_env(domain))
         self.world_params = dict(instance_source="map", map_file=str(SMALL_MAP), scen_file=str(SMALL_SCEN),
                                  n_robots=n_robots, max_steps=12, action_timeout_s=1.0, ready_grace_s=1.0,
                                  summary_path=str(self.summary), linger_s=0.5, wait_for_recorder="recorder") | (world or {})

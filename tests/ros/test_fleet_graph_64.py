@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from fleet_helpers import GraphProbe, env_for, robot_model
+from fleet_helpers import GraphProbe, fleet_env, robot_model
 from test_fleet import OWN_TOPICS, ROBOT_TOPIC, node_graph
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.filterwarnings("ignore::DeprecationWarning")]
@@ -18,7 +18,7 @@ N, PER_PROCESS, STEPS = 64, 32, 3
 def test_64_robots_in_containers_use_only_their_own_topics(tmp_path, domain_id, any_model, benchmark_dir):
     from mapf_world.fleet_launch import ProcessGroup, executable, node_command
     model = robot_model(any_model, tmp_path)
-    group = ProcessGroup(tmp_path / "logs", env_for(domain_id))
+    group = ProcessGroup(tmp_path / "logs", fleet_env(domain_id))
     for lo in range(0, N, PER_PROCESS):
         span = f"{lo}-{lo + PER_PROCESS - 1}"
         group.start(f"policy_{span}", [str(executable("mapf_policy", "robot_container")), "--robots", span,

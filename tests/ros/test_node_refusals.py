@@ -8,7 +8,7 @@ import subprocess
 
 import pytest
 
-from fleet_helpers import REPO_ROOT, SMALL_MAP, SMALL_SCEN, env_for
+from fleet_helpers import REPO_ROOT, SMALL_MAP, SMALL_SCEN, fleet_env
 
 pytestmark = [pytest.mark.ros]
 
@@ -53,7 +53,7 @@ def results(module_domain_id, tmp_path_factory):
     for name, ((pkg, exe), ns, params, _) in CASES.items():
         if params == "GARBAGE_MODEL":
             params = dict(model_path=str(garbage))
-        procs[name] = subprocess.Popen(node_command(pkg, exe, namespace=ns, params=params), env=env_for(module_domain_id),
+        procs[name] = subprocess.Popen(node_command(pkg, exe, namespace=ns, params=params), env=fleet_env(module_domain_id),
                                        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     out = {}
     for name, proc in procs.items():
@@ -84,7 +84,7 @@ def test_node_refuses_to_start(results, case):
 ])
 def test_robot_container_refuses_to_start(module_domain_id, args, expected):
     from mapf_world.fleet_launch import executable
-    proc = subprocess.run([str(executable("mapf_policy", "robot_container"))] + args, env=env_for(module_domain_id),
+    proc = subprocess.run([str(executable("mapf_policy", "robot_container"))] + args, env=fleet_env(module_domain_id),
                           capture_output=True, text=True, timeout=90)
     assert proc.returncode == 2, proc.stdout + proc.stderr
     assert "refusing to start" in proc.stderr and expected in proc.stderr, proc.stderr

@@ -13,7 +13,7 @@ import sys
 import numpy as np
 import pytest
 
-from fleet_helpers import GraphProbe, env_for, robot_model
+from fleet_helpers import GraphProbe, fleet_env, robot_model
 
 pytestmark = [pytest.mark.ros, pytest.mark.filterwarnings("ignore::DeprecationWarning")]
 
@@ -25,7 +25,7 @@ def blocking_env(tmp_path, domain: int) -> dict:
     for name in ("torch",):
         (shim / name).mkdir(parents=True)
         (shim / name / "__init__.py").write_text(BLOCKED.format(name=name))
-    env = env_for(domain)
+    env = fleet_env(domain)
     env["PYTHONPATH"] = os.pathsep.join([str(shim)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
     return env
 

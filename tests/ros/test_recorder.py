@@ -15,7 +15,7 @@ import time
 
 import pytest
 
-from fleet_helpers import GraphProbe, env_for
+from fleet_helpers import GraphProbe, fleet_env
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.filterwarnings("ignore::DeprecationWarning")]
 
@@ -75,7 +75,7 @@ def fleet_topics():
 
 def start_recorder(tmp_path, domain, name="recorder", **params):
     from mapf_world.fleet_launch import ProcessGroup, node_command
-    group = ProcessGroup(tmp_path / "logs", env_for(domain))
+    group = ProcessGroup(tmp_path / "logs", fleet_env(domain))
     mcap = tmp_path / f"{name}.mcap"
     group.start(name, node_command("mapf_world", "recorder", params=dict(output=str(mcap)) | params))
     return group, mcap

@@ -10,7 +10,7 @@ import json
 
 import pytest
 
-from fleet_helpers import SMALL_MAP, SMALL_SCEN, GraphProbe, env_for
+from fleet_helpers import SMALL_MAP, SMALL_SCEN, GraphProbe, fleet_env
 
 pytestmark = [pytest.mark.ros]
 
@@ -51,7 +51,7 @@ def test_world_runs_on_motion_capture_poses(tmp_path, domain_id):
             pose_pubs[i].publish(msg)
 
     node.create_timer(0.02, publish_poses)
-    group = ProcessGroup(tmp_path / "logs", env_for(domain_id))
+    group = ProcessGroup(tmp_path / "logs", fleet_env(domain_id))
     summary = tmp_path / "summary.json"
     group.start("world", node_command("mapf_world", "world_node", params=dict(
         instance_source="map", map_file=str(SMALL_MAP), scen_file=str(SMALL_SCEN), pose_source="pose_topic",

@@ -17,12 +17,11 @@ import json
 import os
 import re
 import signal
+import statistics
 import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-
-import numpy as np
 
 from mapf_world.fleet_launch import ProcessGroup, claim_domain_id, fleet_env, node_command
 
@@ -241,7 +240,7 @@ def main(argv=None) -> int:
               f"{u['cpu_pct_start']!s:>11} {u['cpu_pct_end']!s:>9}")
     peaks = [ep["world_peak_rss_mb"] for ep in report["episodes"] if ep.get("world_peak_rss_mb")]
     if peaks:
-        print(f"world node peak RSS per episode (MB): min {min(peaks)}, median {float(np.median(peaks)):.1f}, "
+        print(f"world node peak RSS per episode (MB): min {min(peaks)}, median {statistics.median(peaks):.1f}, "
               f"max {max(peaks)} over {len(peaks)} episodes; first {peaks[0]}, last {peaks[-1]}")
     print("crashes: " + ("; ".join(report["crashes"]) if report["crashes"] else "none")
           + (f"; stopped early by {report['stopped_early']}" if report["stopped_early"] else ""))

@@ -228,7 +228,7 @@ ROW_SPECS = {  # one agent's n-step transition; fov values are 0/1
     "action": (np.int8, ()), "ret": (np.float32, ()), "boot_gamma": (np.float32, ()),
     "next_fov": (np.uint8, (6, 9, 9)), "next_last_action": (np.int8, ()), "next_position": (np.int16, (2,)),
     "expert": (np.int8, ()), "mc_return": (np.float32, ()), "refused": (np.bool_, ()), "solved": (np.bool_, ()),
-    "still": (np.int16, ()), "next_still": (np.int16, ()),  # steps on the same cell (MapfEnv), for still_bins > 0
+    "still": (np.int16, ()), "next_still": (np.int16, ()),  # the count Args.still_count names, for still_bins > 0
 }
 
 

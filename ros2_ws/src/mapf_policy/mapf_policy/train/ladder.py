@@ -95,7 +95,7 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
         obs, action, refused = steps["obs"][-2], steps["action"][-1], steps["failed"][-1]
         with torch.inference_mode():
             q = forward(*network_inputs(obs, forward.cfg)).numpy()
-        before = np.stack([o["position"] for o in steps["obs"]])[-2].astype(np.int64)
+        before = obs["position"].astype(np.int64)  # the cells at the last step
         try:
             label = make_oracle("odrmstar", env.grid, env.goals, env.dist, 10.0, 2.0).actions(before)
         except ExpertFailed:
