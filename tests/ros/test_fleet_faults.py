@@ -110,7 +110,10 @@ def test_killed_policy_node_stays_others_go_on_restarted_it_rejoins(tmp_path, do
     # graph changes (the kill, the restarted node's start-up): seen about 1 run in 10. So they may time
     # out in at most two steps, and must answer in every other one.
     others_out = [k for k in sorted(by_step) if by_step[k][0] == TIMEOUT or by_step[k][2] == TIMEOUT]
-    assert len(others_out) <= 2, f"robots 0 and 2 must go on: {outcomes}"
+    # The world's and the surviving policy nodes' logs go with a failure (pytest keeps only its last few tmp dirs).
+    assert len(others_out) <= 2, (f"robots 0 and 2 must go on: {outcomes}\n--- world log ---\n"
+                                  f"{fleet.group.log_text('world')[-3000:]}\n--- policy_0 log ---\n"
+                                  f"{fleet.group.log_text('policy_0')[-1500:]}")
     assert by_step.get(target + 1, [None, None])[1] == REJECTED, f"bad action at step {target}: {outcomes}"
     rejoined = [k for k in sorted(by_step) if k > max(timeouts_1) and by_step[k][1] in (OK, BLOCKED)]
     assert rejoined or not world_alive, f"robot 1 never answered after the restart: {outcomes}"
