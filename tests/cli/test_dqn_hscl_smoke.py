@@ -41,8 +41,13 @@ def test_dqn_hscl_logs_what_it_learns_and_resumes(repo_root, tmp_path):
     assert {int(e["step"]) for e in evals} == {6, 12} and evals[0]["stage"] == "1x6"
     net, cfg, meta = load_model(run / "last.pt")
     assert cfg.dueling and meta["step"] == 12 and meta["last_action"] == "executed"
-    for name in ("last.pt", "state.json", "config.json", "train.csv", "training.png"):
+    for name in ("last.pt", "best.pt", "state.json", "config.json", "train.csv", "training.png"):
         assert (pub / name).is_file(), name
+    last_stage = [e for e in evals if e["stage"] == "2x6"]  # best.pt: the first evaluation with the best success
+    best = max(float(e["success_rate"]) for e in last_stage)
+    _, _, best_meta = load_model(run / "best.pt")
+    assert best_meta["validation_success"] == best
+    assert best_meta["step"] == next(int(e["step"]) for e in last_stage if float(e["success_rate"]) == best)
 
     longer = _run(repo_root, tmp_path, "--run-name", "t", "--total-steps", "16")  # same run: full resume
     assert longer.returncode == 0, longer.stderr[-3000:]

@@ -122,6 +122,23 @@ def test_infeasible_labels_lead_into_a_cell_another_agent_holds():
     assert episode_rows(steps, False, 0.9, 1)["expert"].tolist() == [4, 0, 4, 4, -1]
 
 
+def test_labels_that_push_into_an_agent_parked_on_its_goal_are_dropped_on_request():
+    from mapf_policy.train.dqn_hscl import parked_push_labels
+
+    # agent 0 labelled right into (1,1), where agent 1 stands on its goal and steps aside down (as the joint plan
+    # says: feasible); agent 2 labelled right into (0,1), which agent 3, off its goal, leaves; agent 4 unlabelled.
+    pos = np.array([[[1, 0], [1, 1], [0, 0], [0, 1], [3, 3]],
+                    [[1, 1], [2, 1], [0, 1], [0, 2], [3, 3]]])
+    goals = np.array([[1, 3], [1, 1], [0, 4], [0, 5], [3, 0]])
+    expert = np.array([[4, 2, 4, 4, -1]])
+    assert parked_push_labels(pos, goals, expert).tolist() == [[True, False, False, False, False]]
+    steps = _steps([[-0.075] * 5], n_agents=5)
+    steps["obs"][0]["position"], steps["obs"][1]["position"] = pos[0].astype(np.float32), pos[1].astype(np.float32)
+    steps["expert"] = [expert[0]]
+    assert episode_rows(steps, False, 0.9, 1, goals=goals)["expert"].tolist() == [-1, 2, 4, 4, -1]
+    assert episode_rows(steps, False, 0.9, 1)["expert"].tolist() == [4, 2, 4, 4, -1]
+
+
 def test_monte_carlo_lower_bound_only_on_solved_rows():
     q = torch.zeros(2, 5)
     batch = {"action": torch.tensor([1, 1]), "ret": torch.tensor([-0.5, -0.5]), "boot_gamma": torch.tensor([0.5, 0.5]),
@@ -172,6 +189,10 @@ def test_bad_stages_and_args_are_named(text, msg):
         Args(expert_order="random").validate()
     with pytest.raises(ValueError, match="stuck_steps"):
         Args(stuck_steps=-1).validate()
+    with pytest.raises(ValueError, match="blocking_penalty"):
+        Args(blocking_penalty=0.5).validate()
+    with pytest.raises(ValueError, match="imitation"):
+        Args(imitation="supcon").validate()
     with pytest.raises(ValueError, match="priority_alpha"):
         Args(priority_alpha=2.0).validate()
     assert parse_stage("16x40") == (16, 40)
@@ -321,3 +342,63 @@ def test_double_dqn_values_the_online_argmax_with_the_target_network():
     _, _, td_max = losses(q, next_target, batch, Args())
     _, _, td_double = losses(q, next_target, batch, Args(double_dqn=True), next_online)
     assert td_max.item() == 5.0 and td_double.item() == 1.0
+
+
+def test_an_agent_on_its_goal_blocks_a_seen_agent_whose_path_it_cuts_or_lengthens_past_the_margin():
+    from mapf_policy.train.dqn_hscl import blocking_agents
+    from mapf_world.heuristics import distance_maps
+
+    corridor = np.ones((3, 7), np.uint8)
+    corridor[1] = 0  # one free row: an agent standing in it cuts the way through
+    pos, goals = np.array([[1, 3], [1, 0]]), np.array([[1, 3], [1, 6]])
+    dist = distance_maps(corridor, goals)
+    assert blocking_agents(corridor, pos, goals, dist, margin=4).tolist() == [True, False]
+    assert blocking_agents(corridor, pos, goals, dist, margin=4, radius=2).tolist() == [False, False]  # unseen
+    off_goal = np.array([[1, 2], [1, 0]])  # the same agent one cell off its goal blocks nobody (it may move on)
+    assert blocking_agents(corridor, off_goal, goals, dist, margin=4).tolist() == [False, False]
+
+    open_grid = np.zeros((5, 5), np.uint8)  # in the open, going round costs 2 steps
+    pos, goals = np.array([[2, 2], [2, 0]]), np.array([[2, 2], [2, 4]])
+    dist = distance_maps(open_grid, goals)
+    assert blocking_agents(open_grid, pos, goals, dist, margin=2).tolist() == [False, False]
+    assert blocking_agents(open_grid, pos, goals, dist, margin=1).tolist() == [True, False]
+
+
+def test_play_episode_charges_the_blocking_penalty_to_the_blocker_only():
+    corridor = np.ones((3, 5), np.uint8)
+    corridor[1] = 0
+    env = MapfEnv(corridor, np.array([[1, 2], [1, 0]]), np.array([[1, 2], [1, 4]]), max_steps=3)
+
+    def stay(fov, last, pos):  # both stay: agent 0 on its goal in the corridor, agent 1 waiting behind it
+        return torch.tensor([[1.0, 0, 0, 0, 0]] * 2)
+
+    plain, _ = play_episode(stay, env, 0.0, np.random.default_rng(0))
+    shaped, stats = play_episode(stay, env, 0.0, np.random.default_rng(0), blocking=(-0.5, 4))
+    diff = np.stack(shaped["reward"]) - np.stack(plain["reward"])
+    assert np.allclose(diff, [[-0.5, 0.0]] * 3) and stats["blocked"] == 3
+
+
+def test_play_episode_takes_one_epsilon_per_agent():
+    grid = np.zeros((3, 3), np.uint8)
+    env = MapfEnv(grid, np.array([[1, 0], [1, 1]]), np.array([[1, 1], [1, 0]]), max_steps=20)
+
+    def push(fov, last, pos):
+        return torch.tensor([[0.0, 0, 0, 0, 1], [0.0, 0, 0, 1, 0]])
+
+    steps, _ = play_episode(push, env, np.array([0.0, 1.0]), np.random.default_rng(3))
+    acts = np.stack(steps["action"])
+    assert (acts[:, 0] == 4).all() and (acts[:, 1] != 3).any()  # agent 0 greedy throughout, agent 1 random
+
+
+def test_without_goal_exploration_an_agent_on_its_goal_plays_greedily():
+    grid = np.zeros((3, 3), np.uint8)
+    env = MapfEnv(grid, np.array([[0, 0], [2, 2]]), np.array([[0, 0], [2, 0]]), max_steps=30)
+
+    def stay(fov, last, pos):  # agent 0 starts on its goal; agent 1 does not
+        return torch.tensor([[1.0, 0, 0, 0, 0]] * 2)
+
+    steps, _ = play_episode(stay, env, 1.0, np.random.default_rng(0), goal_exploration=False)
+    acts = np.stack(steps["action"])
+    assert (acts[:, 0] == 0).all() and (acts[:, 1] != 0).any()
+    steps, _ = play_episode(stay, env, 1.0, np.random.default_rng(0))
+    assert (np.stack(steps["action"])[:, 0] != 0).any()  # the default: it explores like the others

@@ -93,3 +93,19 @@ def test_hscl_input_checks_and_combined_loss():
     with pytest.raises(ValueError, match="temperature"):
         hscl_loss(torch.zeros(2, 5), torch.tensor([0, 1]), temperature=0.0)
     assert combined_loss(torch.tensor(2.0), torch.tensor(4.0), 0.5, 0.25).item() == pytest.approx(2.0)
+
+
+def test_margin_loss_is_zero_once_the_expert_action_leads_by_the_margin_and_ignores_the_rest():
+    from mapf_policy.losses import margin_loss
+
+    a = torch.tensor([2, 0])
+    q = torch.tensor([[0.0, -0.3, 0.2, 0.05, -0.9], [1.0, 0.5, 0.9, 0.0, 0.0]])
+    # row 0: leads by 0.15 >= 0.1 -> 0; row 1: runner-up 0.9 + 0.1 - 1.0 = 0 -> 0
+    assert float(margin_loss(q, a, 0.1)) == pytest.approx(0.0)
+    # with margin 0.3: row 0 gives 0.05 + 0.3 - 0.2 = 0.15, row 1 gives 0.9 + 0.3 - 1.0 = 0.2
+    assert float(margin_loss(q, a, 0.3)) == pytest.approx(0.175)
+    q2 = q.clone()
+    q2[0, 4], q2[0, 1] = 0.1, 0.1  # reorder the non-expert actions below the margin: no change
+    assert float(margin_loss(q2, a, 0.1)) == pytest.approx(0.0)
+    with pytest.raises(ValueError, match="margin"):
+        margin_loss(q, a, 0.0)

@@ -93,6 +93,21 @@ def hscl_loss(q: torch.Tensor, expert_actions: torch.Tensor, tau_h: float = 0.1,
     return (counts * per_class).sum() / b
 
 
+def margin_loss(q: torch.Tensor, expert_actions: torch.Tensor, margin: float) -> torch.Tensor:
+    """Large-margin imitation (DQfD, Hester et al. 2018; not the paper's): mean over rows of
+    max_a (q_a + margin [a != a*]) - q_{a*}. Zero once the expert's action leads every other by `margin`, so
+    unlike HSCL, whose optimum q ~ h(a*) makes the other actions equal, it leaves their order to the DQN term."""
+    b = _check_q(q, "q")
+    _check_actions(expert_actions, b, "expert_actions")
+    if not margin > 0:
+        raise ValueError(f"margin must be > 0, got {margin}")
+    if b == 0:
+        raise ValueError("margin_loss needs at least one expert sample")
+    a = expert_actions.long()
+    bonus = torch.full_like(q, margin).scatter(1, a[:, None], 0.0)
+    return ((q + bonus).max(dim=1).values - q.gather(1, a[:, None]).squeeze(1)).mean()
+
+
 def combined_loss(l1: torch.Tensor, l2: torch.Tensor, delta: float, phi: float) -> torch.Tensor:
     """Eq. (14): delta * L1 + phi * L2."""
     return delta * l1 + phi * l2
