@@ -85,3 +85,10 @@ def test_ladder_reports_a_rung_and_fails_an_untrained_model(repo_root, tmp_path)
     missing = subprocess.run([str(repo_root / "scripts" / "ladder"), str(tmp_path / "nope.pt")], capture_output=True,
                              text=True, timeout=60)
     assert missing.returncode == 2 and "does not exist" in missing.stderr
+    # --agents keeps only those team sizes of a rung (here the 2-agent row of rung 4) and names a size it lacks.
+    two = subprocess.run([str(repo_root / "scripts" / "ladder"), str(model), "--rung", "4", "--agents", "2", "--cases", "2",
+                          "--json", str(tmp_path / "two.json"), "--no-progress"], capture_output=True, text=True, timeout=120)
+    assert [(r["agents"], r["map"], r["cases"]) for r in json.loads((tmp_path / "two.json").read_text())] == [(2, 40, 2)], two.stderr
+    wrong = subprocess.run([str(repo_root / "scripts" / "ladder"), str(model), "--rung", "2", "--agents", "3"],
+                           capture_output=True, text=True, timeout=60)
+    assert wrong.returncode == 2 and "none of --agents [3]" in wrong.stderr

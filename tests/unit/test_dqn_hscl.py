@@ -195,7 +195,25 @@ def test_bad_stages_and_args_are_named(text, msg):
         Args(imitation="supcon").validate()
     with pytest.raises(ValueError, match="priority_alpha"):
         Args(priority_alpha=2.0).validate()
+    with pytest.raises(ValueError, match="expert_objective"):
+        Args(expert_objective="sum_of_cost").validate()
+    with pytest.raises(ValueError, match="expert_epsilon"):
+        Args(expert_epsilon=0.5).validate()
     assert parse_stage("16x40") == (16, 40)
+
+
+def test_goal_keeping_labels_go_round_an_agent_on_its_goal():
+    # Agent 1 rests on its goal between agent 0 and agent 0's goal (planners' goal_keeping test). The paper's
+    # expert labels the push and has agent 1 step aside; goal keeping (at epsilon 1) labels the way round.
+    from mapf_policy.train.expert import make_oracle
+    from mapf_world.grid import RIGHT, grid_from_text
+
+    grid = grid_from_text(". . .\n. . .")
+    env = MapfEnv(grid, np.array([[1, 0], [1, 1]]), np.array([[1, 2], [1, 1]]), max_steps=20)
+    labels = {obj: make_oracle("odrmstar", env.grid, env.goals, env.dist, 1.0, 2.0, objective=obj).actions(env.positions)
+              for obj in ("free_goal_wait", "goal_keeping")}
+    assert labels["free_goal_wait"][0] == RIGHT and labels["free_goal_wait"][1] != STAY
+    assert labels["goal_keeping"][0] != RIGHT and labels["goal_keeping"][1] == STAY
 
 
 def test_the_harness_builds_observations_with_the_solvers_last_action_mode():

@@ -16,19 +16,21 @@ import itertools
 import numpy as np
 
 
-def optimal_sum_of_costs(grid, starts, goals, free_goal_wait: bool = False) -> int | None:
-    """Optimal cost, or None when no joint plan exists (memoised: several tests ask for the same)."""
+def optimal_sum_of_costs(grid, starts, goals, free_goal_wait: bool = False, leave_cost: int = 1) -> int | None:
+    """Optimal cost, or None when no joint plan exists (memoised: several tests ask for the same).
+    leave_cost: the cost of a move off one's own goal (2: ODrM*'s goal_keeping objective)."""
     grid = np.asarray(grid, dtype=np.uint8)
-    key = (grid.shape, grid.tobytes(), np.asarray(starts).tobytes(), np.asarray(goals).tobytes(), free_goal_wait)
+    key = (grid.shape, grid.tobytes(), np.asarray(starts).tobytes(), np.asarray(goals).tobytes(), free_goal_wait,
+           leave_cost)
     if key not in _MEMO:
-        _MEMO[key] = _search(grid, starts, goals, free_goal_wait)
+        _MEMO[key] = _search(grid, starts, goals, free_goal_wait, leave_cost)
     return _MEMO[key]
 
 
 _MEMO: dict = {}
 
 
-def _search(grid, starts, goals, free_goal_wait: bool, max_states: int = 2_000_000) -> int | None:
+def _search(grid, starts, goals, free_goal_wait: bool, leave_cost: int = 1, max_states: int = 2_000_000) -> int | None:
     h, w = grid.shape
     goals = [tuple(int(v) for v in g) for g in goals]
     n = len(goals)
@@ -44,7 +46,7 @@ def _search(grid, starts, goals, free_goal_wait: bool, max_states: int = 2_000_0
         for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
             rr, cc = r + dr, c + dc
             if 0 <= rr < h and 0 <= cc < w and grid[rr, cc] == 0:
-                out.append(((rr, cc), False, 1))
+                out.append(((rr, cc), False, leave_cost if at_goal else 1))
         return out
 
     start = tuple((tuple(int(v) for v in s), False) for s in starts)

@@ -11,8 +11,8 @@
 #define MAPF_API extern "C" __attribute__((visibility("default")))
 
 namespace {
-constexpr int32_t kAbiVersion = 1;
-enum Algorithm : int32_t { kOdrMstar = 0, kCbs = 1, kOdrMstarFreeGoalWait = 2 };
+constexpr int32_t kAbiVersion = 2;  // 2: algorithm 3 (ODrM*, goal keeping)
+enum Algorithm : int32_t { kOdrMstar = 0, kCbs = 1, kOdrMstarFreeGoalWait = 2, kOdrMstarGoalKeeping = 3 };
 }  // namespace
 
 MAPF_API int32_t mapf_abi_version() { return kAbiVersion; }
@@ -28,10 +28,11 @@ MAPF_API void* mapf_plan(int32_t algorithm, const uint8_t* grid, int32_t h, int3
         if (!(time_limit > 0.0)) throw std::invalid_argument("time_limit must be > 0");
         mapf::Clock clock(time_limit, cancel);
         const mapf::Problem problem(grid, h, w, n, starts, goals);
-        if (algorithm == kOdrMstar || algorithm == kOdrMstarFreeGoalWait)
+        if (algorithm == kOdrMstar || algorithm == kOdrMstarFreeGoalWait || algorithm == kOdrMstarGoalKeeping)
             *r = mapf::plan_odrmstar(problem, epsilon,
-                                     algorithm == kOdrMstar ? mapf::Objective::kSumOfCosts
-                                                            : mapf::Objective::kFreeGoalWait,
+                                     algorithm == kOdrMstar               ? mapf::Objective::kSumOfCosts
+                                     : algorithm == kOdrMstarFreeGoalWait ? mapf::Objective::kFreeGoalWait
+                                                                          : mapf::Objective::kGoalKeeping,
                                      clock);
         else if (algorithm == kCbs)
             *r = mapf::plan_cbs(problem, clock);

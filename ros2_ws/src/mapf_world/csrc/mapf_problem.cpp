@@ -104,4 +104,12 @@ int64_t sum_of_costs(const Problem& p, const std::vector<int32_t>& cells) {
     return total;
 }
 
+int64_t goal_leaves(const Problem& p, const std::vector<int32_t>& cells) {
+    const size_t n = static_cast<size_t>(p.n);
+    int64_t leaves = 0;
+    for (size_t k = n; k < cells.size(); ++k)
+        leaves += cells[k - n] == p.goal[k % n] && cells[k] != cells[k - n];
+    return leaves;
+}
+
 }  // namespace mapf

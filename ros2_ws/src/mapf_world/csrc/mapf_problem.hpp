@@ -90,4 +90,7 @@ struct Result {
 // free; an agent that leaves its goal later pays for all the waiting before).
 int64_t sum_of_costs(const Problem& p, const std::vector<int32_t>& cells);
 
+// Moves off one's own goal in a plan ((T+1) * n cells, step-major).
+int64_t goal_leaves(const Problem& p, const std::vector<int32_t>& cells);
+
 }  // namespace mapf

@@ -126,7 +126,8 @@ class Planner;
 class Context {
   public:
     Context(const Problem& p_, double eps_, Objective objective_, Clock& clock_)
-        : p(p_), eps(eps_), free_goal_wait(objective_ == Objective::kFreeGoalWait), clock(clock_), old_stamp(p_.cells(), 0), new_stamp(p_.cells(), 0),
+        : p(p_), eps(eps_), free_goal_wait(objective_ != Objective::kSumOfCosts),
+          leave_cost(objective_ == Objective::kGoalKeeping ? 2 : 1), clock(clock_), old_stamp(p_.cells(), 0), new_stamp(p_.cells(), 0),
           old_who(p_.cells(), 0), new_who(p_.cells(), 0) {}
     Planner& planner(Mask mask);
     uint32_t next_stamp() {
@@ -141,6 +142,7 @@ class Context {
     const Problem& p;
     const double eps;
     const bool free_goal_wait;
+    const int32_t leave_cost;  // a move off one's own goal (2 with kGoalKeeping, else 1)
     Clock& clock;
     int64_t expansions = 0;
     size_t node_bytes = 0;
@@ -219,10 +221,12 @@ class Planner {
     }
     Code at_goal_policy(Code c) const { return ctx_.free_goal_wait ? c : (c | 1u); }
     // Step cost of one agent: finishing and staying finished are free (with free_goal_wait: any
-    // wait on the goal is), anything else costs 1.
+    // wait on the goal is), a move off the goal costs leave_cost, anything else 1.
     int32_t step_cost(int local, Code from, Code to) const {
         if (is_finished(from) || is_finished(to)) return 0;
-        return (ctx_.free_goal_wait && from == to && cell_of(from) == p_.goal[agents_[local]]) ? 0 : 1;
+        const bool on_goal = cell_of(from) == p_.goal[agents_[local]];
+        if (from == to) return (ctx_.free_goal_wait && on_goal) ? 0 : 1;
+        return on_goal ? ctx_.leave_cost : 1;
     }
 
     static uint64_t hash(const Code* s, int m) {
@@ -448,7 +452,8 @@ class Planner {
             const int32_t* nb = p_.neighbours(cc);
             for (int a = 0; a < 4 && nb[a] >= 0; ++a) {
                 opts[no] = code_of(nb[a]);
-                costs[no++] = 1;
+                costs[no] = step_cost(k, c, opts[no]);
+                ++no;
             }
         }
         const uint32_t stamp = nodes_[parent].od_stamp;
@@ -644,9 +649,11 @@ Result plan_odrmstar(const Problem& p, double epsilon, Objective objective, Cloc
         // over-count it (a wait on the goal, not declared finished, and never followed by leaving),
         // which an inflated search may leave in its plan; with kFreeGoalWait the search cost can
         // only under-count it (waits on the goal before leaving it again).
+        // With kGoalKeeping the search also adds 1 per move off a goal.
         const bool exact = objective == Objective::kSumOfCosts;
+        const int64_t surcharge = objective == Objective::kGoalKeeping ? goal_leaves(p, r.cells) : 0;
         if ((exact && r.sum_of_costs > cost) || (exact && epsilon == 1.0 && r.sum_of_costs != cost) ||
-            (!exact && r.sum_of_costs < cost)) {
+            (!exact && r.sum_of_costs + surcharge < cost)) {
             r.status = kError;
             r.message = "internal error: search cost " + std::to_string(cost) + " != plan cost " +
                         std::to_string(r.sum_of_costs);

@@ -18,6 +18,10 @@ enum class Objective : int32_t {
     kSumOfCosts = 0,    // as above: waiting on the goal is free only at the end
     kFreeGoalWait = 1,  // every wait on one's own goal is free (the cost of M*'s reference
                         // implementation); the reported sum of costs still uses the definition
+    kGoalKeeping = 2,   // kFreeGoalWait, and a move off one's own goal costs 2: where an agent on
+                        // its goal stepping aside and another going round cost the same, the one
+                        // on its goal keeps it (beyond the paper: labels whose give-way rule an
+                        // agent can follow from what it sees)
 };
 
 // Plans with ODrM* until solved, proven unsolvable (the search space is exhausted) or out of time.

@@ -52,6 +52,7 @@ from mapf_world.env import LAST_ACTION_MODES, MapfEnv
 from mapf_world.grid import DELTAS
 from mapf_world.heuristics import distance_maps
 from mapf_world.instances import generate_instance
+from mapf_world.planners.odrmstar import OBJECTIVES as EXPERT_OBJECTIVES
 
 
 @dataclass(frozen=True)
@@ -176,6 +177,11 @@ class Args:
     each agent can work out from its position input and the agents it sees; beyond the paper)."""
     expert_epsilon: float = 10.0
     """ODrM* inflation."""
+    expert_objective: str = "free_goal_wait"
+    """ODrM*'s objective (mapf_world.planners.odrmstar): 'free_goal_wait' (waits on one's goal are free; the paper's
+    expert), 'sum_of_costs', or 'goal_keeping' (beyond the paper: a move off one's goal also costs 1 more, so where an agent on its goal
+    stepping aside ties with another going round, the labels go round; it decides such ties only at
+    expert_epsilon 1: with an inflated heuristic the search follows the mover's shorter distance first)."""
     expert_time_limit: float = 2.0
     """Seconds per ODrM* planning call."""
     relabel_time_budget: float = 5.0
@@ -235,6 +241,9 @@ class Args:
             need(getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")
         need(self.expert_order in EXPERT_ORDERS, f"expert_order must be one of {EXPERT_ORDERS}, got {self.expert_order!r}")
         need(self.expert in ("odrmstar", "shortest_path"), f"expert must be odrmstar or shortest_path, got {self.expert!r}")
+        need(self.expert_objective in EXPERT_OBJECTIVES,
+             f"expert_objective must be one of {sorted(EXPERT_OBJECTIVES)}, got {self.expert_objective!r}")
+        need(self.expert_epsilon >= 1, f"expert_epsilon must be >= 1, got {self.expert_epsilon}")
         need(len(self.stages) >= 1, "stages must name at least one stage")
         for s in self.stages:
             parse_stage(s)
@@ -576,7 +585,8 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             oracle = None
             if drive or ep_rng.random() < args.relabel_fraction:
                 oracle = make_oracle(args.expert, env.grid, env.goals, env.dist, args.expert_epsilon,
-                                     min(args.expert_time_limit, args.relabel_time_budget), order=args.expert_order)
+                                     min(args.expert_time_limit, args.relabel_time_budget), order=args.expert_order,
+                                     objective=args.expert_objective)
             greedy = not drive and ep_rng.random() < args.greedy_fraction
             epsilon = 0.0 if greedy and not args.stuck_steps else eps_at(state["step"])
             if args.agent_eps_spread:

@@ -103,15 +103,17 @@ class OrderedOracle:
 
 
 def make_oracle(kind: str, grid: np.ndarray, goals: np.ndarray, dist: np.ndarray, epsilon: float, time_limit: float,
-                order: str = "index"):
-    """An oracle with `.actions(positions)`; `order` (odrmstar only): see EXPERT_ORDERS."""
+                order: str = "index", objective: str = "free_goal_wait"):
+    """An oracle with `.actions(positions)`; `order` and `objective` (odrmstar only): see EXPERT_ORDERS and
+    mapf_world.planners.odrmstar.OBJECTIVES."""
     if kind == "shortest_path":
         return ShortestPathExpert(grid, goals, dist)
     if kind == "odrmstar":
         from mapf_world.planners.expert import ExpertOracle  # native planner: imported only when used
 
         def make(goals_in_order):
-            return _OdrmOracle(ExpertOracle(grid, goals_in_order, epsilon=epsilon, time_limit=time_limit))
+            return _OdrmOracle(ExpertOracle(grid, goals_in_order, epsilon=epsilon, time_limit=time_limit,
+                                            objective=objective))
 
         return make(goals) if order == "index" else OrderedOracle(make, goals, order)
     raise ValueError(f"unknown expert {kind!r} (odrmstar or shortest_path)")

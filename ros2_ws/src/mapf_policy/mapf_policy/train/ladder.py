@@ -29,6 +29,7 @@ from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
 from mapf_policy.train.dqn_hscl import greedy_outcomes, play_episode
 from mapf_world.env import MapfEnv
 from mapf_world.grid import DELTAS, STAY
+from mapf_world.planners.odrmstar import OBJECTIVES
 
 # rung -> (what, [(agents, map side, success bar)])
 RUNGS = {
@@ -46,19 +47,25 @@ def model_last_action(meta: dict) -> str:
 
 
 def run_rung(path, rung: int, cases: int, seed: int = 0, density: float = 0.3, max_steps: int = 256,
-             progress: bool = True) -> list[dict]:
+             progress: bool = True, agents: list[int] | None = None) -> list[dict]:
+    """One row per team size of the rung (only those in `agents`, when given)."""
     if rung not in RUNGS:
         raise ValueError(f"rung must be one of {sorted(RUNGS)}, got {rung}")
+    sizes = [a for a, _, _ in RUNGS[rung][1]]
+    if agents is not None and not set(agents) & set(sizes):
+        raise ValueError(f"rung {rung} has team sizes {sizes}, none of --agents {agents}")
     net, _, meta = load_model(path)
     forward, mode = InferenceNet(net), model_last_action(meta)
     rows = []
-    for agents, side, bar in RUNGS[rung][1]:
-        insts = generated_cases(seed, COMPARE_STREAM, [agents], cases, side, density)
+    for n_agents, side, bar in RUNGS[rung][1]:
+        if agents is not None and n_agents not in agents:
+            continue
+        insts = generated_cases(seed, COMPARE_STREAM, [n_agents], cases, side, density)
         t0 = time.perf_counter()
-        outcomes = greedy_outcomes(forward, tqdm(insts, desc=f"rung {rung}: {agents} agents, {side}x{side}", unit="case",
+        outcomes = greedy_outcomes(forward, tqdm(insts, desc=f"rung {rung}: {n_agents} agents, {side}x{side}", unit="case",
                                                  disable=not progress), mode, max_steps)
         success = float(np.mean([s for s, _ in outcomes]))
-        rows.append({"rung": rung, "agents": agents, "map": side, "cases": cases, "success_rate": success,
+        rows.append({"rung": rung, "agents": n_agents, "map": side, "cases": cases, "success_rate": success,
                      "successes": int(sum(s for s, _ in outcomes)),
                      "average_step": float(np.mean([t for _, t in outcomes])), "bar": bar, "passed": success >= bar,
                      "last_action": mode, "seconds": round(time.perf_counter() - t0, 1)})
@@ -66,9 +73,10 @@ def run_rung(path, rung: int, cases: int, seed: int = 0, density: float = 0.3, m
 
 
 def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, density: float = 0.3,
-                 max_steps: int = 256) -> dict:
+                 max_steps: int = 256, expert_objective: str = "free_goal_wait", expert_epsilon: float = 10.0) -> dict:
     """Where greedy failures stand at their last step: agents whose move was refused, whether that move is
-    their argmax, its lead over the runner-up, and whether ODrM* (bound 10, 2 s) labels that same move.
+    their argmax, its lead over the runner-up, and whether ODrM* (bound `expert_epsilon`, `expert_objective`, 2 s)
+    labels that same move.
 
     A refused move repeated at a fixed point (the same observation each step) is a greedy deadlock.
     `fixed_point`: failed cases whose agents all stood still over the last 10 steps; `refused_with_room`: refused
@@ -97,7 +105,8 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
             q = forward(*network_inputs(obs, forward.cfg)).numpy()
         before = obs["position"].astype(np.int64)  # the cells at the last step
         try:
-            label = make_oracle("odrmstar", env.grid, env.goals, env.dist, 10.0, 2.0).actions(before)
+            label = make_oracle("odrmstar", env.grid, env.goals, env.dist, expert_epsilon, 2.0,
+                                objective=expert_objective).actions(before)
         except ExpertFailed:
             label = None
         free = 4 - obstacle_moves(obs["fov"]).sum(axis=1)  # free neighbour cells of each agent
@@ -140,9 +149,13 @@ def main(argv=None) -> int:
     p.add_argument("--rung", type=int, nargs="+", default=[1], help="rungs to check (default: 1)")
     p.add_argument("--cases", type=int, default=100, help="cases per team size (default 100)")
     p.add_argument("--seed", type=int, default=0, help="seed of the held-out cases (default 0)")
+    p.add_argument("--agents", type=int, nargs="+", help="only these team sizes of the rungs (rung 4: 1 2 4 8 16 32 64)")
     p.add_argument("--json", help="also write the rows here")
     p.add_argument("--stuck", action="store_true",
                    help="also report, for each rung's failed cases, the refused moves at the last step (stuck_report)")
+    p.add_argument("--stuck-expert-objective", default="free_goal_wait", choices=sorted(OBJECTIVES),
+                   help="ODrM* objective of --stuck's labels (free_goal_wait, the training default; goal_keeping; sum_of_costs)")
+    p.add_argument("--stuck-expert-epsilon", type=float, default=10.0, help="ODrM* bound of --stuck's labels (default 10)")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     if args.cases < 1:
@@ -150,7 +163,8 @@ def main(argv=None) -> int:
         return 2
     torch.set_num_threads(1)
     try:
-        rows = [r for k in args.rung for r in run_rung(args.model, k, args.cases, args.seed, progress=not args.no_progress)]
+        rows = [r for k in args.rung
+                for r in run_rung(args.model, k, args.cases, args.seed, progress=not args.no_progress, agents=args.agents)]
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -158,7 +172,8 @@ def main(argv=None) -> int:
     if args.stuck:
         for r in rows:
             if not r["passed"]:
-                rep = stuck_report(args.model, r["agents"], r["map"], args.cases, args.seed)
+                rep = stuck_report(args.model, r["agents"], r["map"], args.cases, args.seed,
+                                   expert_objective=args.stuck_expert_objective, expert_epsilon=args.stuck_expert_epsilon)
                 r["stuck"] = rep
                 print(f"\n{r['agents']} agents, {r['map']}x{r['map']}: {rep['failed_cases']} failed cases, "
                       f"{rep['fixed_point']} of them at a fixed point (no agent moved in the last 10 steps); at the last "

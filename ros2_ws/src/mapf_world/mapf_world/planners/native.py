@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-ODRMSTAR, CBS, ODRMSTAR_FREE_GOAL_WAIT = 0, 1, 2  # algorithm codes of csrc/api.cpp
-ABI_VERSION = 1
+ODRMSTAR, CBS, ODRMSTAR_FREE_GOAL_WAIT, ODRMSTAR_GOAL_KEEPING = 0, 1, 2, 3  # algorithm codes of csrc/api.cpp
+ABI_VERSION = 2
 STATUS_NAMES = {0: "solved", 1: "unsolvable", 2: "timeout"}
 STATUS_ERROR = 3
 

@@ -10,6 +10,10 @@ definition of planners/result.py):
 - "free_goal_wait": every wait on one's own goal is free, the cost model of the M* reference
   implementation (Wagner's, used by PRIMAL) behind the paper's ODrM* figures. The default: with
   epsilon = 10 it gives the short plans the expert should teach (see the closing note of issue 3).
+- "goal_keeping": "free_goal_wait", and a move off one's own goal costs 2 (beyond the paper). Where an
+  agent on its goal stepping aside and another going round it cost the same, the one on its goal
+  keeps it: the labels then teach a rule each agent can follow from what it sees (go round an agent
+  that stands still), instead of one that depends on where the other agent is going.
 """
 from __future__ import annotations
 
@@ -22,7 +26,8 @@ from mapf_world.planners import native
 from mapf_world.planners.result import PlanResult, check_epsilon, check_time_limit, finish
 
 MAX_AGENTS = 64  # agent sets are 64-bit masks in the C++ core
-OBJECTIVES = {"sum_of_costs": native.ODRMSTAR, "free_goal_wait": native.ODRMSTAR_FREE_GOAL_WAIT}
+OBJECTIVES = {"sum_of_costs": native.ODRMSTAR, "free_goal_wait": native.ODRMSTAR_FREE_GOAL_WAIT,
+              "goal_keeping": native.ODRMSTAR_GOAL_KEEPING}
 
 
 def check_objective(objective) -> str:
