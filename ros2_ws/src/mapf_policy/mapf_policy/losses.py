@@ -28,6 +28,15 @@ def _check_actions(a: torch.Tensor, b: int, name: str) -> None:
         raise ValueError(f"{name} must lie in 0..{N_ACTIONS - 1}, got {a.min().item()}..{a.max().item()}")
 
 
+def _check_expert_batch(q: torch.Tensor, expert_actions: torch.Tensor, loss: str) -> int:
+    """Rows of an imitation term's batch: q (B, 5) and expert_actions (B,) checked, B >= 1."""
+    b = _check_q(q, "q")
+    _check_actions(expert_actions, b, "expert_actions")
+    if b == 0:
+        raise ValueError(f"{loss} needs at least one expert sample")
+    return b
+
+
 def dqn_loss(
     q: torch.Tensor,
     actions: torch.Tensor,
@@ -78,12 +87,9 @@ def hscl_loss(q: torch.Tensor, expert_actions: torch.Tensor, tau_h: float = 0.1,
     L_c is computed once per class present in the batch (exact, and 5 rows instead of |I|).
     The mean over anchors (not the sum of eq. 13) keeps the scale independent of the batch size.
     """
-    b = _check_q(q, "q")
-    _check_actions(expert_actions, b, "expert_actions")
+    b = _check_expert_batch(q, expert_actions, "hscl_loss")
     if not temperature > 0:
         raise ValueError(f"temperature must be > 0, got {temperature}")
-    if b == 0:
-        raise ValueError("hscl_loss needs at least one expert sample")
     prototypes = F.normalize(hot_vectors(torch.arange(N_ACTIONS, device=q.device), tau_h), dim=1)  # (5, 5)
     logits = prototypes @ F.normalize(q, dim=1).T / temperature  # (5, B): cos(h(c), q_j) / T
     log_prob = logits - torch.logsumexp(logits, dim=1, keepdim=True)
@@ -97,12 +103,9 @@ def margin_loss(q: torch.Tensor, expert_actions: torch.Tensor, margin: float) ->
     """Large-margin imitation (DQfD, Hester et al. 2018; not the paper's): mean over rows of
     max_a (q_a + margin [a != a*]) - q_{a*}. Zero once the expert's action leads every other by `margin`, so
     unlike HSCL, whose optimum q ~ h(a*) makes the other actions equal, it leaves their order to the DQN term."""
-    b = _check_q(q, "q")
-    _check_actions(expert_actions, b, "expert_actions")
+    _check_expert_batch(q, expert_actions, "margin_loss")
     if not margin > 0:
         raise ValueError(f"margin must be > 0, got {margin}")
-    if b == 0:
-        raise ValueError("margin_loss needs at least one expert sample")
     a = expert_actions.long()
     bonus = torch.full_like(q, margin).scatter(1, a[:, None], 0.0)
     return ((q + bonus).max(dim=1).values - q.gather(1, a[:, None]).squeeze(1)).mean()
