@@ -92,3 +92,30 @@ def test_ladder_reports_a_rung_and_fails_an_untrained_model(repo_root, tmp_path)
     wrong = subprocess.run([str(repo_root / "scripts" / "ladder"), str(model), "--rung", "2", "--agents", "3"],
                            capture_output=True, text=True, timeout=60)
     assert wrong.returncode == 2 and "none of --agents [3]" in wrong.stderr
+    # --epsilon: a diagnostic with random actions, which never passes a rung; --stuck is for greedy play only.
+    noisy = subprocess.run([str(repo_root / "scripts" / "ladder"), str(model), "--rung", "1", "--cases", "2", "--epsilon",
+                            "0.5", "--json", str(tmp_path / "e.json"), "--no-progress"], capture_output=True, text=True,
+                           timeout=120)
+    row = json.loads((tmp_path / "e.json").read_text())[0]
+    assert noisy.returncode == 1 and row["epsilon"] == 0.5 and not row["passed"] and "epsilon-greedy 0.5" in noisy.stdout
+    both = subprocess.run([str(repo_root / "scripts" / "ladder"), str(model), "--epsilon", "0.1", "--stuck"],
+                          capture_output=True, text=True, timeout=60)
+    assert both.returncode == 2 and "drop --epsilon" in both.stderr
+
+
+@pytest.mark.slow
+def test_a_recurrent_run_trains_on_sequences_and_the_ladder_plays_it_with_memory(repo_root, tmp_path):
+    run = _run(repo_root, tmp_path, "--run-name", "g", "--recurrent", "--sequence-length", "4", "--double-dqn")
+    assert run.returncode == 0, run.stderr[-3000:]
+    rows = _rows(tmp_path / "runs" / "g" / "train.csv")
+    assert [int(r["step"]) for r in rows] == [4, 8, 12] and all(float(r["adv_norm"]) > 0 for r in rows)
+    _, cfg, meta = load_model(tmp_path / "runs" / "g" / "last.pt")
+    assert cfg.recurrent and meta["train_args"]["sequence_length"] == 4
+    out = subprocess.run([str(repo_root / "scripts" / "ladder"), str(tmp_path / "runs" / "g" / "last.pt"), "--rung", "1",
+                          "--cases", "3", "--json", str(tmp_path / "g.json"), "--stuck", "--no-progress"],
+                         capture_output=True, text=True, timeout=120)
+    rows = json.loads((tmp_path / "g.json").read_text())
+    assert out.returncode == (0 if rows[0]["passed"] else 1) and rows[0]["cases"] == 3, out.stderr[-2000:]
+    exported = subprocess.run([str(repo_root / "scripts" / "export_model"), str(tmp_path / "runs" / "g" / "last.pt")],
+                              capture_output=True, text=True, timeout=120)
+    assert exported.returncode != 0 and "recurrent" in exported.stderr

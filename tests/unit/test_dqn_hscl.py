@@ -420,3 +420,48 @@ def test_without_goal_exploration_an_agent_on_its_goal_plays_greedily():
     assert (acts[:, 0] == 0).all() and (acts[:, 1] != 0).any()
     steps, _ = play_episode(stay, env, 1.0, np.random.default_rng(0))
     assert (np.stack(steps["action"])[:, 0] != 0).any()  # the default: it explores like the others
+
+
+def test_the_learning_rate_falls_linearly_to_lr_end_only_on_request():
+    from mapf_policy.train.dqn_hscl import learning_rate
+    flat, decay = Args(lr=1e-4, total_steps=1000), Args(lr=1e-4, lr_end=1e-5, total_steps=1000)
+    assert learning_rate(flat, 0) == learning_rate(flat, 999) == 1e-4
+    assert learning_rate(decay, 0) == 1e-4 and learning_rate(decay, 1000) == pytest.approx(1e-5)
+    assert learning_rate(decay, 500) == pytest.approx(5.5e-5) and learning_rate(decay, 2000) == pytest.approx(1e-5)
+    with pytest.raises(ValueError, match="lr_end"):
+        Args(lr_end=-1.0).validate()
+
+
+def test_advantage_learning_lowers_the_target_of_a_non_greedy_action_by_alpha_times_its_gap():
+    q = torch.zeros(2, 5, requires_grad=True)
+    q_target = torch.tensor([[0.0, 1.0, 0.2, 0.0, 0.0], [0.0, 1.0, 0.2, 0.0, 0.0]])
+    batch = {"action": torch.tensor([1, 2]), "ret": torch.zeros(2), "boot_gamma": torch.zeros(2),
+             "expert": torch.tensor([-1, -1]), "solved": torch.zeros(2, dtype=torch.bool)}
+    args = Args(advantage_learning=0.5, huber_delta=10.0)
+    _, _, td = losses(q, torch.zeros(2, 5), batch, args, q_target=q_target)
+    assert td.tolist() == pytest.approx([0.0, -0.4])  # greedy action: no change; the other: 0.5 x (1.0 - 0.2)
+    _, _, plain = losses(q, torch.zeros(2, 5), batch, Args(huber_delta=10.0), q_target=q_target)
+    assert plain.tolist() == [0.0, 0.0]
+
+
+def test_a_greedy_fixed_point_ends_the_episode_and_bootstraps_from_its_exact_value():
+    """stuck_value: the head-on pushers above end the episode after 3 still steps, and the rows that bootstrap
+    from the last state get the value of pushing for ever, -0.5 / (1 - gamma), with no network bootstrap."""
+    grid = np.zeros((3, 3), np.uint8)
+    env = MapfEnv(grid, np.array([[1, 0], [1, 1]]), np.array([[1, 1], [1, 0]]), max_steps=12, last_action="executed")
+
+    def push(fov, last, pos):
+        return torch.tensor([[0.0, 0, 0, 0, 1], [0.0, 0, 0, 1, 0]])
+
+    steps, stats = play_episode(push, env, 1.0, np.random.default_rng(1), greedy_until_stuck=3, stuck_ends=True)
+    assert stats["fixed_point"] and not stats["success"] and stats["steps"] == 3
+    rows = episode_rows(steps, False, 0.9, 2, fixed_point=True)
+    by_step = rows["ret"].reshape(3, 2)
+    assert by_step[1].tolist() == pytest.approx([-5.0, -5.0]) and by_step[2].tolist() == pytest.approx([-5.0, -5.0])
+    assert by_step[0].tolist() == pytest.approx([-0.95, -0.95])  # bootstraps from step 2, inside the episode
+    assert rows["boot_gamma"].reshape(3, 2)[1:].tolist() == [[0.0, 0.0]] * 2
+    assert rows["boot_gamma"].reshape(3, 2)[0].tolist() == pytest.approx([0.81, 0.81])
+    plain = episode_rows(steps, False, 0.9, 2)
+    assert plain["boot_gamma"].reshape(3, 2)[2].tolist() == pytest.approx([0.9, 0.9])  # a time limit bootstraps
+    with pytest.raises(ValueError, match="stuck_value"):
+        Args(stuck_value=True).validate()

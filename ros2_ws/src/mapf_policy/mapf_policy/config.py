@@ -82,6 +82,12 @@ class NetworkConfig:
     observations change while it waits. 0: no such input (the paper's network, every earlier model)."""
     still_features: int = 64
     """Width of the fully connected layer applied to the still input (when still_bins > 0)."""
+    recurrent: bool = False
+    """Beyond the paper (DHC's design): a GRU cell hidden_features -> hidden_features between the first fully
+    connected layer and the output, so each agent keeps a memory of its own observations across steps
+    (QNetwork.step; 3 x 2 x (300 x 300 + 300) = 541,800 more parameters). A memoryless greedy agent at a fixed
+    point sees the same observation each step and repeats itself (issue 20); with memory it can tell a neighbour
+    that has waited beside it for several steps from one passing by. False: the paper's feed-forward network."""
     still_count: str = "cell"
     """What the still input counts (MapfEnv): 'cell', the steps the agent has stood on the same cell (observation
     key 'still'), 'refused', its consecutive refused moves (key 'refused_run'; 0 after a stay or a move), or

@@ -38,6 +38,9 @@ def export_model(model_path, out_path=None) -> Path:
     model_path = Path(model_path)
     out = Path(out_path) if out_path is not None else default_export_path(model_path)
     net, cfg, meta = load_model(model_path)
+    if cfg.recurrent:
+        raise ValueError(f"{model_path} is a recurrent network (NetworkConfig.recurrent, a training experiment beyond "
+                         "the paper): the robot runtime is feed-forward and has no export for it")
     arrays = {k: v.detach().cpu().float().numpy() for k, v in net.state_dict().items()}
     header = {"format": EXPORT_FORMAT, "version": EXPORT_VERSION, "network_config": cfg.asdict(), "meta": meta,
               "source": {"file": model_path.name, "sha256": file_sha256(model_path)},

@@ -164,18 +164,27 @@ class FastForward:
 
     def _q(self, weights: tuple, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor,
            still: torch.Tensor | None = None) -> torch.Tensor:
+        return self.net.q_values(self.net._feed_forward(self._embed(weights, fov, last_action, position, still)))
+
+    def _embed(self, weights: tuple, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor,
+               still: torch.Tensor | None = None) -> torch.Tensor:
         self.net.check_inputs(fov, last_action, position, still)
         attention, layers = weights
         x = self._attention(fov, *attention) if attention is not None else fov.permute(0, 2, 3, 1)
         winograd = self.winograd_min_batch is not None and fov.shape[0] >= self.winograd_min_batch
         for layer in layers:
             x = layer(x, winograd)
-        return self.net.head(x.permute(0, 3, 1, 2), last_action, position, still)  # NCHW view for CBAM
+        return self.net.embed_head(x.permute(0, 3, 1, 2), last_action, position, still)  # NCHW view for CBAM
 
     def __call__(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor,
                  still: torch.Tensor | None = None) -> torch.Tensor:
         """(B, 5) Q-values; the inputs' shapes are checked as by QNetwork.forward."""
         return self._q(self.derived_weights(), fov, last_action, position, still)
+
+    def embed(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor,
+              still: torch.Tensor | None = None) -> torch.Tensor:
+        """QNetwork.embed, faster: the (B, hidden_features) features before the output (and the memory)."""
+        return self._embed(self.derived_weights(), fov, last_action, position, still)
 
 
 class InferenceNet(FastForward):
@@ -188,7 +197,15 @@ class InferenceNet(FastForward):
     def __call__(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor,
                  still: torch.Tensor | None = None) -> torch.Tensor:
         with torch.inference_mode():
-            versions = tuple((id(p), p._version) for p in self.net.parameters())
-            if versions != self._versions:
-                self._weights, self._versions = self.derived_weights(), versions
-            return self._q(self._weights, fov, last_action, position, still)
+            return self._q(self._cached(), fov, last_action, position, still)
+
+    def embed(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor,
+              still: torch.Tensor | None = None) -> torch.Tensor:
+        with torch.inference_mode():
+            return self._embed(self._cached(), fov, last_action, position, still)
+
+    def _cached(self) -> tuple:
+        versions = tuple((id(p), p._version) for p in self.net.parameters())
+        if versions != self._versions:
+            self._weights, self._versions = self.derived_weights(), versions
+        return self._weights

@@ -100,6 +100,8 @@ class QNetwork(nn.Module):
         extra = cfg.still_features if cfg.still_bins else 0
         self.hidden_fc = nn.Linear(c_in * side * side + cfg.action_features + cfg.position_features + extra,
                                    cfg.hidden_features)
+        # The memory (cfg.recurrent, beyond the paper): h_t = GRU(embedding_t, h_{t-1}), Q_t from h_t.
+        self.gru = nn.GRUCell(cfg.hidden_features, cfg.hidden_features) if cfg.recurrent else None
         self.q_fc = nn.Linear(cfg.hidden_features, cfg.n_actions)
         # Dueling split (cfg.dueling): q_fc gives the advantages A, value_fc the state value V.
         self.value_fc = nn.Linear(cfg.hidden_features, 1) if cfg.dueling else None
@@ -125,15 +127,56 @@ class QNetwork(nn.Module):
 
     def forward(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor,
                 still: torch.Tensor | None = None) -> torch.Tensor:
+        return self.q_values(self._feed_forward(self.embed(fov, last_action, position, still)))
+
+    def embed(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor,
+              still: torch.Tensor | None = None) -> torch.Tensor:
+        """The (B, hidden_features) features of one step's observation: everything before the output (and the memory)."""
         self.check_inputs(fov, last_action, position, still)
         x = self.attention(fov) if self.attention is not None else fov
-        return self.head(self.trunk(x), last_action, position, still)
+        return self.embed_head(self.trunk(x), last_action, position, still)
+
+    def step(self, fov: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor, still: torch.Tensor | None = None,
+             h: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """A recurrent network's Q-values of one step and each agent's new memory: (q (B, 5), h (B, hidden_features)).
+        `h` is the memory before the step (None: zeros, an episode's start)."""
+        return self.remember(self.embed(fov, last_action, position, still), h)
+
+    def remember(self, embedding: torch.Tensor, h: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(q, new memory) from one step's embedding and the memory before it (None: zeros)."""
+        if self.gru is None:
+            raise ValueError("this network has no memory (NetworkConfig.recurrent is False); call it directly")
+        if h is None:
+            h = embedding.new_zeros(embedding.shape[0], self.cfg.hidden_features)
+        if tuple(h.shape) != (embedding.shape[0], self.cfg.hidden_features):
+            raise ValueError(f"memory h must have shape ({embedding.shape[0]}, {self.cfg.hidden_features}), got "
+                             f"{tuple(h.shape)}")
+        h = self.gru(embedding, h)
+        return self.q_values(h), h
+
+    def _feed_forward(self, embedding: torch.Tensor) -> torch.Tensor:
+        if self.gru is not None:
+            raise ValueError("this network is recurrent (NetworkConfig.recurrent): its Q-values need each agent's "
+                             "memory; use QNetwork.step (or RecurrentActor in training)")
+        return embedding
+
+    def q_values(self, hidden: torch.Tensor) -> torch.Tensor:
+        """The output layer(s): Q (B, 5) from the (B, hidden_features) features (or memory)."""
+        if self.value_fc is None:
+            return self.q_fc(hidden)
+        value, adv = self.value_fc(hidden), self.q_fc(hidden)
+        return value + adv - adv.mean(dim=1, keepdim=True)
 
     def head(self, x: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor,
              still: torch.Tensor | None = None) -> torch.Tensor:
         """Q-values from the trunk's output x (B, C, s, s): CBAM, then the fully connected layers.
 
         Shared with the inference path (inference.py), which computes the trunk differently."""
+        return self.q_values(self._feed_forward(self.embed_head(x, last_action, position, still)))
+
+    def embed_head(self, x: torch.Tensor, last_action: torch.Tensor, position: torch.Tensor,
+                   still: torch.Tensor | None = None) -> torch.Tensor:
+        """The (B, hidden_features) features from the trunk's output x (B, C, s, s): CBAM, then the first FC layer."""
         if self.channel_attention is not None:
             x = self.channel_attention(x)
         if self.spatial_attention is not None:
@@ -144,11 +187,7 @@ class QNetwork(nn.Module):
         if self.still_fc is not None:
             parts.append(F.relu(self.still_fc(still)))
         z = torch.cat(parts, dim=1)
-        hidden = F.relu(self.hidden_fc(z))
-        if self.value_fc is None:
-            return self.q_fc(hidden)
-        value, adv = self.value_fc(hidden), self.q_fc(hidden)
-        return value + adv - adv.mean(dim=1, keepdim=True)
+        return F.relu(self.hidden_fc(z))
 
 
 def count_parameters(net: nn.Module) -> int:

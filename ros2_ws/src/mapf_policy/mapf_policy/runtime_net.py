@@ -128,6 +128,8 @@ def read_export(path) -> tuple[dict, dict]:
         cfg = NetworkConfig.from_dict(header["network_config"])
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{path}: bad network_config: {exc}") from exc
+    if cfg.recurrent:
+        raise ValueError(f"{path}: a recurrent network (NetworkConfig.recurrent); this runtime is feed-forward")
     check_weights(arrays, cfg, str(path))
     if weights_fingerprint(arrays) != header["weights_sha256"]:
         raise ValueError(f"{path}: the weights do not match the fingerprint written at export: the file is damaged "

@@ -20,6 +20,9 @@ What differs from the first design (mapf_policy/train/learner.py), and why (mode
   actions break the loops that stop a greedy agent. Earlier stages keep a share of the episodes.
 - Some episodes are driven by the expert (ODrM*), so that the DQN term sees team successes (+3) early.
 - The last-action input can be the executed action (`--last-action executed`, MapfEnv).
+- Beyond the paper, off by default and labelled in Args: among others a recurrent variant (`--recurrent`: a GRU memory
+  per agent, trained on sequences from stored memories, `recurrent_batch`), and greedy actor episodes that end at
+  the greedy team's fixed points with their exact value (`--stuck-value`).
 Everything runs in this process; actions come from InferenceNet (the fast CPU forward of inference.py).
 """
 from __future__ import annotations
@@ -75,6 +78,12 @@ class Args:
     still_count: str = "cell"
     """What that count is (NetworkConfig.still_count): 'cell' (steps on the same cell), 'refused' (consecutive
     refused moves) or 'contact' (steps standing still beside the same unmoved agents)."""
+    recurrent: bool = False
+    """Beyond the paper (DHC's design): a GRU memory per agent (NetworkConfig.recurrent), trained on sequences of
+    `sequence_length` steps of one agent, each started from the memory its actor had there (R2D2's stored state).
+    False: the paper's feed-forward network, trained on single rows."""
+    sequence_length: int = 8
+    """Steps per training sequence of a recurrent network (the batch holds batch_size / sequence_length of them)."""
     total_steps: int = 20_000
     """Learner gradient steps of the whole run."""
     session_minutes: float = 0.0
@@ -83,6 +92,10 @@ class Args:
     """Rows per gradient step."""
     lr: float = 1e-4
     """Adam learning rate."""
+    lr_end: float = 0.0
+    """Beyond the paper's silence on a schedule: with lr_end > 0 the learning rate falls linearly from lr to lr_end
+    over total_steps (DHC halves it twice instead), so that the end weights are not one noisy draw of a curve that
+    wanders. 0: constant lr."""
     gamma: float = 0.99
     """Discount factor."""
     n_step: int = 2
@@ -103,6 +116,11 @@ class Args:
     """Double DQN targets (van Hasselt et al. 2016): the online network picks the bootstrap action, the target
     network values it, against the overestimate of max over one network's noisy values (r23: mean Q +0.28
     against a Monte Carlo return of -0.7 before its collapse). False: the max of the target network (DHC)."""
+    advantage_learning: float = 0.0
+    """Beyond the paper: the advantage-learning target of Baird (1999) and Bellemare et al. (2016), r + gamma^m V(s')
+    - alpha (V(s) - Q(s, a)) with V = max over the target network, for alpha > 0. It widens the gap between the
+    greedy action and the rest, which in r26's deadlocks is 0.04-0.09 (the refused push leads), against |TD| errors
+    of 0.3-0.5: a greedy policy is only as robust as its action gaps. 0: the DQN target."""
     mc_lower_bound: bool = False
     """Beyond the paper: DQN target max(n-step target, the Monte Carlo return) on rows of solved episodes."""
     feasible_labels: bool = False
@@ -169,6 +187,12 @@ class Args:
     """In those greedy episodes, exploration (epsilon) starts once the joint positions have stayed the same for
     this many steps: the greedy fixed point (a deadlock) enters the replay with a few rows, not a whole episode
     of them, and so does what follows when an agent leaves it. 0: greedy to the end."""
+    stuck_value: bool = False
+    """Beyond the paper: a greedy actor episode (greedy_fraction, with stuck_steps k >= 2) ends where the team has
+    stood still k steps, a fixed point of the deterministic greedy team (with the executed last action, every agent
+    then sees the same observation each step); its last rows bootstrap from the exact value of staying there for ever
+    under greedy play, r_i / (1 - gamma) with r_i agent i's last step reward (-7.5 for a wait off the goal, -50 for a
+    refused move, 0 on the goal), instead of exploring out of it. False: exploration starts there (stuck_steps)."""
     expert: str = "odrmstar"
     """'odrmstar' (the paper's) or 'shortest_path' (a stand-in for tests)."""
     expert_order: str = "index"
@@ -220,9 +244,15 @@ class Args:
         need(self.variant in ("hscl",) + tuple(ABLATIONS), f"variant must be hscl or one of {tuple(ABLATIONS)}, got {self.variant!r}")
         need(self.last_action in LAST_ACTION_MODES, f"last_action must be one of {LAST_ACTION_MODES}, got {self.last_action!r}")
         need(self.stuck_steps >= 0, f"stuck_steps must be >= 0, got {self.stuck_steps}")
+        need(not self.stuck_value or (self.stuck_steps >= 2 and self.greedy_fraction > 0),
+             "stuck_value needs greedy_fraction > 0 and stuck_steps >= 2 (a fixed point of the greedy team)")
         need(self.blocking_penalty <= 0, f"blocking_penalty is a penalty: must be <= 0, got {self.blocking_penalty}")
         need(self.blocking_margin >= 0, f"blocking_margin must be >= 0, got {self.blocking_margin}")
         need(self.still_bins == 0 or self.still_bins >= 2, f"still_bins must be 0 or >= 2, got {self.still_bins}")
+        need(not (self.recurrent and self.priority_alpha > 0), "recurrent training samples sequences uniformly: "
+             "priority_alpha must be 0 with recurrent")
+        need(self.sequence_length >= 1 and self.sequence_length <= self.batch_size,
+             f"sequence_length must lie in 1..batch_size, got {self.sequence_length}")
         need(self.still_count in STILL_KEYS, f"still_count must be one of {tuple(STILL_KEYS)}, got {self.still_count!r}")
         for name in ("total_steps", "batch_size", "n_step", "target_update_every", "replay_capacity",
                      "max_episode_steps", "eval_cases", "log_every", "threads"):
@@ -237,6 +267,9 @@ class Args:
         need(self.imitation in ("hscl", "margin"), f"imitation must be hscl or margin, got {self.imitation!r}")
         need(self.margin > 0, f"margin must be > 0, got {self.margin}")
         need(0.0 < self.tau_h < 0.2, f"tau_h must lie in (0, 0.2), got {self.tau_h}")
+        need(self.lr_end >= 0, f"lr_end must be >= 0, got {self.lr_end}")
+        need(0 <= self.advantage_learning < 1, f"advantage_learning must lie in [0, 1), got {self.advantage_learning}")
+        need(not (self.recurrent and self.advantage_learning > 0), "advantage_learning is not implemented for recurrent")
         for name in ("lr", "grad_clip", "temperature", "replay_ratio", "huber_delta", "expert_time_limit"):
             need(getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")
         need(self.expert_order in EXPERT_ORDERS, f"expert_order must be one of {EXPERT_ORDERS}, got {self.expert_order!r}")
@@ -250,7 +283,14 @@ class Args:
 
     def network_config(self) -> NetworkConfig:
         return NetworkConfig(dueling=self.dueling, still_bins=self.still_bins, still_count=self.still_count,
-                             **ABLATIONS.get(self.variant, {}))
+                             recurrent=self.recurrent, **ABLATIONS.get(self.variant, {}))
+
+
+def learning_rate(args: Args, step: int) -> float:
+    """The learning rate of gradient step `step`: lr, or with lr_end > 0 linear from lr to lr_end over total_steps."""
+    if args.lr_end <= 0:
+        return args.lr
+    return args.lr + min(1.0, step / args.total_steps) * (args.lr_end - args.lr)
 
 
 def parse_stage(text: str) -> tuple[int, int]:
@@ -271,7 +311,11 @@ ROW_SPECS = {  # one agent's n-step transition; fov values are 0/1
     "next_fov": (np.uint8, (6, 9, 9)), "next_last_action": (np.int8, ()), "next_position": (np.int16, (2,)),
     "expert": (np.int8, ()), "mc_return": (np.float32, ()), "refused": (np.bool_, ()), "solved": (np.bool_, ()),
     "still": (np.int16, ()), "next_still": (np.int16, ()),  # the count Args.still_count names, for still_bins > 0
+    # Where the row sits, for sequences (recurrent): row (t, i) of episode e is followed by row (t + 1, i) of e,
+    # n_agents rows later; m is its bootstrap's distance (next_* is the observation at t + m).
+    "episode": (np.int64, ()), "m": (np.int8, ()), "n_agents": (np.int16, ()),
 }
+# A recurrent network's rows also hold "h_in", the memory before the step (float16, (hidden_features,)).
 
 
 def blocking_agents(grid: np.ndarray, positions: np.ndarray, goals: np.ndarray, dist: np.ndarray, margin: int,
@@ -295,9 +339,40 @@ def blocking_agents(grid: np.ndarray, positions: np.ndarray, goals: np.ndarray, 
     return out
 
 
+class RecurrentActor:
+    """A recurrent network (NetworkConfig.recurrent) as an acting function for play_episode: each call is one step of
+    every agent, whose memories it carries in `h` (zeros after `reset`); `q` holds the last call's Q-values."""
+
+    def __init__(self, net: QNetwork):
+        if not net.cfg.recurrent:
+            raise ValueError("RecurrentActor needs a recurrent network (NetworkConfig.recurrent)")
+        self.net, self.fast, self.h, self.q = net, InferenceNet(net), None, None
+
+    @property
+    def cfg(self) -> NetworkConfig:
+        return self.net.cfg
+
+    def reset(self, n_agents: int) -> None:
+        self.h = torch.zeros(n_agents, self.net.cfg.hidden_features)
+
+    def __call__(self, *inputs) -> torch.Tensor:
+        if self.h is None or self.h.shape[0] != inputs[0].shape[0]:
+            raise ValueError(f"RecurrentActor: reset(n_agents) first (memories for "
+                             f"{None if self.h is None else self.h.shape[0]} agents, inputs for {inputs[0].shape[0]})")
+        with torch.inference_mode():
+            self.q, self.h = self.net.remember(self.fast.embed(*inputs), self.h)
+        return self.q
+
+
+def acting(net: QNetwork):
+    """The acting function of a network: InferenceNet, or RecurrentActor for a recurrent one."""
+    return RecurrentActor(net) if net.cfg.recurrent else InferenceNet(net)
+
+
 def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle=None, budget: float = 0.0,
                  expert_drives: bool = False, greedy_until_stuck: int = 0,
-                 blocking: tuple[float, int] = (0.0, 0), goal_exploration: bool = True) -> tuple[dict, dict]:
+                 blocking: tuple[float, int] = (0.0, 0), goal_exploration: bool = True,
+                 stuck_ends: bool = False) -> tuple[dict, dict]:
     """One episode, every agent acting on its own observation (all in one batch).
 
     Actions: argmax Q (the paper's greedy rule; ties to the lowest index), or the expert's when
@@ -309,10 +384,15 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
     states are labelled until it fails or `budget` seconds are spent. Returns per-step arrays
     (T steps, N agents; obs has T + 1 entries) and stats. The network's inputs follow `forward.cfg`
     (network_inputs); a plain function stands for a network with the paper's inputs. `blocking` (penalty, margin)
-    adds the penalty to the reward of every agent that blocking_agents finds after a step (beyond the paper)."""
+    adds the penalty to the reward of every agent that blocking_agents finds after a step (beyond the paper). With
+    `stuck_ends`, the episode ends instead where exploration would start (stats["fixed_point"])."""
     cfg = getattr(forward, "cfg", NetworkConfig())
+    recurrent = isinstance(forward, RecurrentActor)
     obs, _ = env.reset()
     steps = {"obs": [obs], "action": [], "reward": [], "expert": [], "failed": []}
+    if recurrent:
+        forward.reset(env.n_agents)
+        steps["h_in"] = []
     spent, labelled, done, terminated, blocked = 0.0, 0, False, False, 0
     still, eps_now = 0, (0.0 if greedy_until_stuck > 0 else epsilon)
     while not done:
@@ -325,8 +405,12 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
             except ExpertFailed:
                 oracle = None
             spent += time.perf_counter() - t0
+        if recurrent:  # the memory follows every observation, also while the expert drives
+            steps["h_in"].append(forward.h.numpy().astype(np.float16))
         if expert_drives and expert[0] >= 0:
             actions = expert.copy()
+            if recurrent:
+                forward(*network_inputs(obs, cfg))
         else:
             with torch.inference_mode():
                 q = forward(*network_inputs(obs, cfg)).numpy()
@@ -341,12 +425,14 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
             blockers = blocking_agents(env.grid, env.positions, env.goals, env.dist, blocking[1])
             reward, blocked = reward + blocking[0] * blockers, blocked + int(blockers.sum())
         still = still + 1 if np.array_equal(before, env.positions) else 0
-        if greedy_until_stuck > 0 and still >= greedy_until_stuck:
+        fixed_point = greedy_until_stuck > 0 and still >= greedy_until_stuck and not terminated
+        if fixed_point:
             eps_now = epsilon
         for k, v in (("obs", obs), ("action", actions), ("reward", reward), ("expert", expert), ("failed", info["failed"])):
             steps[k].append(v)
-        done = terminated or truncated
+        done = terminated or truncated or (fixed_point and stuck_ends)
     return steps, {"success": bool(terminated), "steps": env.step_count, "n_agents": env.n_agents,
+                   "fixed_point": bool(fixed_point and stuck_ends),
                    "labelled": labelled, "oracle_s": spent, "expert_drove": expert_drives and labelled > 0,
                    "blocked": blocked}
 
@@ -377,13 +463,18 @@ def parked_push_labels(positions: np.ndarray, goals: np.ndarray, expert: np.ndar
 
 
 def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasible_labels: bool = False,
-                 still_key: str = "still", goals: np.ndarray | None = None) -> dict:
+                 still_key: str = "still", goals: np.ndarray | None = None, episode: int = 0,
+                 fixed_point: bool = False) -> dict:
     """Replay rows of every agent and step: n-step return, bootstrap state and discount, Monte Carlo return.
 
     Row (t, i): ret = sum_{k<m} gamma^k r[t+k, i] with m = min(n, T - t); bootstrap from obs[t + m] with
     discount gamma^m, or 0 when the episode terminated at t + m = T. A time-limit end is no terminal state.
     Rows "still"/"next_still" hold the observation's count `still_key` (NetworkConfig.still_count). With `goals`,
-    labels that push into an agent parked on its goal are dropped (parked_push_labels)."""
+    labels that push into an agent parked on its goal are dropped (parked_push_labels). `episode` numbers the rows'
+    episode (for sequences); a recurrent actor's steps also give "h_in", the memory before each step. With
+    `fixed_point` (the episode ended at a fixed point of the greedy team, Args.stuck_value), the rows whose bootstrap
+    state is the last one bootstrap from its exact value instead: each agent's last reward r repeated for ever,
+    r / (1 - gamma), added to the return with the bootstrap's discount, and no network bootstrap."""
     reward = np.stack(steps["reward"]).astype(np.float64)  # (T, N)
     t_len, n_agents = reward.shape
     mc = np.zeros_like(reward)
@@ -398,6 +489,10 @@ def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasi
     boot_gamma = gamma ** m.astype(np.float64)
     if terminated:
         boot_gamma[np.arange(t_len) + m == t_len] = 0.0
+    if fixed_point and not terminated and gamma < 1:
+        last = np.arange(t_len) + m == t_len
+        ret[last] += boot_gamma[last, None] * reward[-1][None, :] / (1.0 - gamma)
+        boot_gamma[last] = 0.0
     obs = steps["obs"]
     fov = np.stack([o["fov"] for o in obs]).astype(np.uint8)  # (T+1, N, 6, l, l)
     last = np.stack([o["last_action"].argmax(axis=1) for o in obs]).astype(np.int8)
@@ -411,7 +506,8 @@ def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasi
         expert = np.where(parked_push_labels(pos.astype(np.int64), np.asarray(goals, np.int64), expert.astype(np.int64)),
                           -1, expert).astype(np.int8)
     flat = lambda a: a.reshape((t_len * n_agents,) + a.shape[2:])  # noqa: E731 (row order: step-major)
-    return {
+    extra = {"h_in": flat(np.stack(steps["h_in"]))} if "h_in" in steps else {}
+    return extra | {
         "fov": flat(fov[:-1]), "last_action": flat(last[:-1]), "position": flat(pos[:-1]),
         "action": flat(np.stack(steps["action"]).astype(np.int8)), "ret": flat(ret.astype(np.float32)),
         "boot_gamma": flat(np.repeat(boot_gamma[:, None], n_agents, 1).astype(np.float32)),
@@ -420,16 +516,21 @@ def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasi
         "refused": flat(np.stack(steps["failed"]).astype(bool)),
         "solved": np.full(t_len * n_agents, bool(terminated)),  # mc_return is a whole episode's return
         "still": flat(still[:-1]), "next_still": flat(still[nxt]),
+        "episode": np.full(t_len * n_agents, episode, dtype=np.int64),
+        "m": flat(np.repeat(m[:, None], n_agents, 1).astype(np.int8)),
+        "n_agents": np.full(t_len * n_agents, n_agents, dtype=np.int16),
     }
 
 
 class Replay:
     """Ring buffer of ROW_SPECS rows; uniform sampling, or prioritised by |TD error| (alpha > 0)."""
 
-    def __init__(self, capacity: int, alpha: float = 0.0, beta: float = 0.4):
+    def __init__(self, capacity: int, alpha: float = 0.0, beta: float = 0.4, hidden: int = 0):
+        """`hidden` > 0: rows also keep a recurrent actor's memory "h_in" of that width (sample_sequences)."""
         self.capacity, self.size, self.cursor = capacity, 0, 0
         self.alpha, self.beta = alpha, beta
-        self.data = {k: np.zeros((capacity,) + shape, dtype=dt) for k, (dt, shape) in ROW_SPECS.items()}
+        self.specs = ROW_SPECS | ({"h_in": (np.float16, (hidden,))} if hidden else {})
+        self.data = {k: np.zeros((capacity,) + shape, dtype=dt) for k, (dt, shape) in self.specs.items()}
         self.priority = np.zeros(capacity)  # (|TD| + 0.001)^alpha of each row
         self.max_priority = 1.0
 
@@ -438,7 +539,7 @@ class Replay:
         if n > self.capacity:
             rows, n = {k: v[-self.capacity:] for k, v in rows.items()}, self.capacity
         idx = (self.cursor + np.arange(n)) % self.capacity
-        for k in ROW_SPECS:
+        for k in self.specs:
             self.data[k][idx] = rows[k]
         self.priority[idx] = self.max_priority  # a new row is drawn at least once soon
         self.cursor, self.size = (self.cursor + n) % self.capacity, min(self.capacity, self.size + n)
@@ -453,10 +554,33 @@ class Replay:
             weight = torch.from_numpy((w / w.max()).astype(np.float32))
         else:
             idx, weight = rng.integers(0, self.size, n), torch.ones(n)
+        return self._tensors(idx, weight)
+
+    def sample_sequences(self, n: int, length: int, n_step: int, rng) -> tuple[dict, torch.Tensor]:
+        """n sequences of one agent's consecutive rows, drawn uniformly by their first row: (batch, valid).
+
+        A sequence covers `length` training steps plus the n_step - 1 after them, whose memories the bootstrap
+        of the last ones needs (next_* of row t is the observation at t + m, read with the memory after row
+        t + m - 1). batch: the rows as by sample, flattened sequence-major, (n * (length + n_step - 1), ...);
+        valid (n, length + n_step - 1): the row is in the same episode (a sequence can run past its end)."""
+        width = length + n_step - 1
+        start = rng.integers(0, self.size, n)
+        idx = (start[:, None] + np.arange(width)[None, :] * self.data["n_agents"][start][:, None].astype(np.int64))
+        idx %= self.capacity
+        # Episode numbers are unique, so a row of another episode (a later one, or an older one where the ring
+        # wrapped) ends the sequence; rows past the filled part are zeros.
+        valid = (self.data["episode"][idx] == self.data["episode"][start][:, None]) & (idx < self.size)
+        valid = np.cumprod(valid, axis=1).astype(bool)  # a sequence ends at its first row of another episode
+        return self._tensors(idx.reshape(-1), torch.ones(idx.size)), torch.from_numpy(valid)
+
+    def _tensors(self, idx: np.ndarray, weight: torch.Tensor) -> dict:
         eye = torch.eye(5)
         b = {k: torch.from_numpy(v[idx]) for k, v in self.data.items()}
         t = {"action": b["action"].long(), "expert": b["expert"].long(), "refused": b["refused"], "solved": b["solved"],
-             "still": b["still"].long(), "next_still": b["next_still"].long(), "index": idx, "weight": weight}
+             "still": b["still"].long(), "next_still": b["next_still"].long(), "index": idx, "weight": weight,
+             "m": b["m"].long(), "episode": b["episode"]}
+        if "h_in" in b:
+            t["h_in"] = b["h_in"].float()
         for k in ("ret", "boot_gamma", "mc_return"):
             t[k] = b[k]
         for pre in ("", "next_"):
@@ -472,17 +596,74 @@ class Replay:
             self.max_priority = max(self.max_priority, float(p.max()))
 
 
+def recurrent_batch(net: QNetwork, target: QNetwork, online_fast, target_fast, act_fast, replay: Replay, args: Args,
+                    rng) -> tuple:
+    """A recurrent network's batch: (rows, q, next_q_target, next_q_online or None), the rows those of losses().
+
+    batch_size / sequence_length sequences of one agent each (Replay.sample_sequences); both networks unroll their
+    memory over a sequence from the memory its actor stored at its first row (R2D2's stored state, no burn-in).
+    The training rows are the first sequence_length steps of each sequence that lie in its episode. Row t
+    bootstraps from its next_* observation (t + m) read with the memory after row t + m - 1."""
+    length, width = args.sequence_length, args.sequence_length + args.n_step - 1
+    n_seq, hid = max(1, args.batch_size // length), net.cfg.hidden_features
+    seq, valid = replay.sample_sequences(n_seq, length, args.n_step, rng)
+
+    def inputs(pre: str, rows=None) -> tuple:
+        keys = (pre + "fov", pre + "last_action", pre + "position")
+        out = tuple(seq[k] if rows is None else seq[k].view(n_seq, width, *seq[k].shape[1:])[:, :length].reshape(
+            -1, *seq[k].shape[1:]) for k in keys)
+        if args.still_bins:
+            still = seq[pre + "still"] if rows is None else seq[pre + "still"].view(n_seq, width)[:, :length].reshape(-1)
+            out += (still_onehot(still, args.still_bins),)
+        return out
+
+    def unroll(model: QNetwork, fast, h: torch.Tensor) -> torch.Tensor:
+        e = fast.embed(*inputs("")).reshape(n_seq, width, hid)
+        memories = []
+        for k in range(width):
+            h = model.gru(e[:, k], h)
+            memories.append(h)
+        return torch.stack(memories, dim=1)  # (S, W, H): the memory after each step
+
+    h0 = seq["h_in"].view(n_seq, width, hid)[:, 0]
+    hs = unroll(net, online_fast, h0)
+    q = net.q_values(hs[:, :length].reshape(-1, hid))
+    keep = valid[:, :length].reshape(-1)
+    pos = torch.arange(length).repeat(n_seq)
+    which = torch.arange(n_seq).repeat_interleave(length)
+    prev = pos + seq["m"].view(n_seq, width)[:, :length].reshape(-1) - 1  # <= width - 1 since m <= n_step
+    prev = prev.clamp(0, width - 1)  # rows past their episode (masked) may hold anything
+    nxt = inputs("next_", rows=True)
+    with torch.inference_mode():
+        ht = unroll(target, target_fast, h0)
+        next_q = target.q_values(target.gru(target_fast.embed(*nxt), ht[which, prev]))
+        next_online = None
+        if args.double_dqn:
+            next_online = net.q_values(net.gru(act_fast.embed(*nxt), hs.detach()[which, prev]))
+    rows = {}
+    for k, v in seq.items():
+        if isinstance(v, torch.Tensor) and v.dim() >= 1 and v.shape[0] == n_seq * width:
+            rows[k] = v.view(n_seq, width, *v.shape[1:])[:, :length].reshape(-1, *v.shape[1:])[keep]
+    rows["index"] = seq["index"].reshape(n_seq, width)[:, :length].reshape(-1)[keep.numpy()]
+    return (rows, q[keep], next_q[keep].clone(), None if next_online is None else next_online[keep].clone())
+
+
 # --- losses and what to look at -----------------------------------------------------------------------------
 def losses(q: torch.Tensor, next_q_target: torch.Tensor, batch: dict, args: Args,
-           next_q_online: torch.Tensor | None = None) -> tuple:
+           next_q_online: torch.Tensor | None = None, q_target: torch.Tensor | None = None) -> tuple:
     """(DQN term, HSCL term, TD errors): Huber on the n-step TD error; HSCL on the advantage (dueling) or on Q.
-    With `next_q_online` (double DQN) the bootstrap is the target network's value of the online argmax."""
+    With `next_q_online` (double DQN) the bootstrap is the target network's value of the online argmax. With
+    `q_target`, the target network's Q(s, .) of the rows' own states, the target is advantage learning's
+    (Args.advantage_learning)."""
     q_taken = q.gather(1, batch["action"][:, None]).squeeze(1)
     if next_q_online is None:
         boot = next_q_target.max(dim=1).values
     else:
         boot = next_q_target.gather(1, next_q_online.argmax(dim=1, keepdim=True)).squeeze(1)
     target = batch["ret"] + batch["boot_gamma"] * boot
+    if q_target is not None and args.advantage_learning > 0:
+        gap = q_target.max(dim=1).values - q_target.gather(1, batch["action"][:, None]).squeeze(1)
+        target = target - args.advantage_learning * gap
     if args.mc_lower_bound:
         # Beyond the paper: the return a solved episode actually got from (s, a) is a lower bound on Q*(s, a),
         # so the team reward reaches early states without waiting for target syncs (the bound of
@@ -514,12 +695,13 @@ def correlation(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a * b).sum()) / den if den > 0 else float("nan")
 
 
-def greedy_outcomes(forward, cases, last_action: str, max_steps: int) -> list[tuple[bool, int]]:
-    """(success, steps) per case with argmax Q and no exploration; a failure counts max_steps."""
+def greedy_outcomes(forward, cases, last_action: str, max_steps: int, epsilon: float = 0.0) -> list[tuple[bool, int]]:
+    """(success, steps) per case with argmax Q and no exploration; a failure counts max_steps. With `epsilon` > 0
+    (a diagnostic, not the paper's rule) each agent acts at random with that probability (seeded per case)."""
     outcomes = []
-    for inst in cases:
+    for k, inst in enumerate(cases):
         env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=last_action)
-        _, stats = play_episode(forward, env, 0.0, np.random.default_rng(0))
+        _, stats = play_episode(forward, env, epsilon, np.random.default_rng(k if epsilon > 0 else 0))
         outcomes.append((stats["success"], stats["steps"] if stats["success"] else max_steps))
     return outcomes
 
@@ -531,7 +713,7 @@ def greedy_success(forward, cases: list, last_action: str, max_steps: int) -> tu
 
 
 TRAIN_COLUMNS = ("step", "stage", "episodes", "l_dqn", "l_hscl", "hscl_weight", "dqn_share", "td_abs", "td_refused",
-                 "refused_minus_stay", "refused_rows", "q_mean", "mc_return_mean", "q_return_corr", "agreement",
+                 "refused_minus_stay", "refused_rows", "adv_norm", "q_mean", "mc_return_mean", "q_return_corr", "agreement",
                  "train_success", "train_steps", "mean_team", "samples_per_s", "learner_steps_per_s", "env_rows_per_s",
                  "epsilon", "blocked_share", "elapsed_s")
 EVAL_COLUMNS = ("step", "stage", "agents", "size", "success_rate", "average_step")
@@ -557,9 +739,10 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
     truncate_log(run_dir / "train.csv", state["step"])
     truncate_log(run_dir / "eval.csv", state["step"])
     add_log_columns(run_dir / "train.csv", TRAIN_COLUMNS)
-    online_q, target_q, act_q = FastForward(net), InferenceNet(target), InferenceNet(net)
+    online_q, target_q, act_q = FastForward(net), InferenceNet(target), acting(net)
     params = [p for p in net.parameters()]
-    replay = Replay(args.replay_capacity, args.priority_alpha, args.priority_beta)
+    replay = Replay(args.replay_capacity, args.priority_alpha, args.priority_beta,
+                    hidden=ncfg.hidden_features if args.recurrent else 0)
     valid = {k: generated_cases(args.seed, VALID_STREAM, [a], args.eval_cases, s, args.density)
              for k, (a, s) in enumerate(stages)}
     train_log, eval_log = CsvLog(run_dir / "train.csv", TRAIN_COLUMNS), CsvLog(run_dir / "eval.csv", EVAL_COLUMNS)
@@ -594,9 +777,11 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             steps, stats = play_episode(act_q, env, epsilon, rng, oracle, args.relabel_time_budget, drive,
                                         greedy_until_stuck=args.stuck_steps if greedy else 0,
                                         blocking=(args.blocking_penalty, args.blocking_margin),
-                                        goal_exploration=args.goal_exploration)
+                                        goal_exploration=args.goal_exploration,
+                                        stuck_ends=args.stuck_value and greedy)
             rows = episode_rows(steps, stats["success"], args.gamma, args.n_step, args.feasible_labels,
-                                STILL_KEYS[args.still_count], goals=None if args.parked_labels else env.goals)
+                                STILL_KEYS[args.still_count], goals=None if args.parked_labels else env.goals,
+                                episode=state["episodes"], fixed_point=stats["fixed_point"])
             replay.add(rows)
             state["episodes"] += 1
             window["rows"] += len(rows["action"])
@@ -607,18 +792,29 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             owed += len(rows["action"]) * args.replay_ratio / args.batch_size
             while owed >= 1.0 and state["step"] < args.total_steps and not stop["now"]:
                 owed -= 1.0
-                batch = replay.sample(args.batch_size, rng)
-                still = (still_onehot(batch["still"], args.still_bins),) if args.still_bins else ()
-                next_still = (still_onehot(batch["next_still"], args.still_bins),) if args.still_bins else ()
-                with torch.autocast("cpu", dtype=torch.bfloat16, enabled=args.bf16):
-                    q = online_q(batch["fov"], batch["last_action"], batch["position"], *still).float()
-                with torch.no_grad():
-                    next_q = target_q(batch["next_fov"], batch["next_last_action"], batch["next_position"], *next_still)
-                    next_online = (act_q(batch["next_fov"], batch["next_last_action"], batch["next_position"], *next_still)
-                                   if args.double_dqn else None)
-                l_dqn, l_hscl, td = losses(q, next_q, batch, args, next_online)
+                if args.recurrent:
+                    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=args.bf16):
+                        batch, q, next_q, next_online = recurrent_batch(net, target, online_q, target_q, act_q.fast,
+                                                                        replay, args, rng)
+                    q, q_target = q.float(), None
+                else:
+                    batch = replay.sample(args.batch_size, rng)
+                    still = (still_onehot(batch["still"], args.still_bins),) if args.still_bins else ()
+                    next_still = (still_onehot(batch["next_still"], args.still_bins),) if args.still_bins else ()
+                    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=args.bf16):
+                        q = online_q(batch["fov"], batch["last_action"], batch["position"], *still).float()
+                    with torch.no_grad():
+                        next_q = target_q(batch["next_fov"], batch["next_last_action"], batch["next_position"], *next_still)
+                        next_online = (act_q(batch["next_fov"], batch["next_last_action"], batch["next_position"],
+                                             *next_still) if args.double_dqn else None)
+                        q_target = (target_q(batch["fov"], batch["last_action"], batch["position"], *still)
+                                    if args.advantage_learning > 0 else None)
+                l_dqn, l_hscl, td = losses(q, next_q, batch, args, next_online, q_target)
                 loss = args.dqn_weight * l_dqn + state["hscl_weight"] * l_hscl
                 state["step"] += 1
+                if args.lr_end > 0:
+                    for group in opt.param_groups:
+                        group["lr"] = learning_rate(args, state["step"])
                 logging = state["step"] % args.log_every == 0
                 if logging:  # 3. Look inside: each term's gradient, TD errors where moves were refused, Q vs return.
                     g_dqn = grad_norm(args.dqn_weight * l_dqn, params)
@@ -635,6 +831,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                     m = window["m"]
                     m["dqn_share"].append(share)
                     m["td_abs"].append(float(td.abs().mean()))
+                    m["adv_norm"].append(float((q.detach() - q.detach().mean(dim=1, keepdim=True)).norm(dim=1).mean()))
                     m["refused_rows"].append(int(ref.sum()))
                     if ref.any():
                         m["td_refused"].append(float(td[ref].abs().mean()))
@@ -704,7 +901,7 @@ def _log_row(args: Args, state: dict, window: dict, session_t0: float, epsilon: 
             "l_dqn": mean("l_dqn"), "l_hscl": mean("l_hscl"), "hscl_weight": state["hscl_weight"],
             "dqn_share": mean("dqn_share"), "td_abs": mean("td_abs"), "td_refused": mean("td_refused"),
             "refused_minus_stay": mean("refused_minus_stay"),
-            "refused_rows": int(sum(window["m"]["refused_rows"])), "q_mean": mean("q_mean"),
+            "refused_rows": int(sum(window["m"]["refused_rows"])), "adv_norm": mean("adv_norm"), "q_mean": mean("q_mean"),
             "mc_return_mean": mean("mc_return_mean"), "q_return_corr": mean("q_return_corr"), "agreement": mean("agreement"),
             "train_success": float(np.mean([e["success"] for e in eps if not e["expert_drove"]] or [np.nan])),
             "train_steps": float(np.mean([e["steps"] for e in eps] or [np.nan])),
@@ -817,6 +1014,8 @@ def plot_run(run_dir: Path) -> Path | None:
     ax[0, 3].plot(s, log["q_mean"], lw=1, label="mean Q(s,a)")
     ax[0, 3].plot(s, log["mc_return_mean"], lw=1, label="mean MC return")
     ax[0, 3].plot(s, log["q_return_corr"], lw=1, label="corr(Q, MC return)")
+    if "adv_norm" in log:
+        ax[0, 3].plot(s, log["adv_norm"], lw=1, label="|A|, advantage norm")
     ax[0, 3].set_title("Q against returns"), ax[0, 3].legend(fontsize=7)
     ax[1, 0].plot(s, log["agreement"], lw=1)
     ax[1, 0].set_title("argmax Q = expert label (batch)")

@@ -8,6 +8,9 @@ observation uses the last-action mode it was trained with (its metadata; 'reques
   rung 2  4 agents on 20x20           success >= 0.99
   rung 3  16 agents on 40x40          success >= 0.99
   rung 4  1-64 agents on 40x40        success >= the paper's greedy figures (Table III) at 4..64, 1.0 below
+
+`--epsilon E` (a diagnostic, never a rung check): each agent acts at random with probability E, which tells how much
+of a greedy shortfall is the greedy rule's fixed points (deterministic agents that repeat a refused move or a wait).
 """
 from __future__ import annotations
 
@@ -22,11 +25,10 @@ import torch
 from tqdm import tqdm
 
 from mapf_policy.action_selection import obstacle_moves
-from mapf_policy.inference import InferenceNet
 from mapf_policy.model_io import load_model
 from mapf_policy.network import network_inputs
 from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
-from mapf_policy.train.dqn_hscl import greedy_outcomes, play_episode
+from mapf_policy.train.dqn_hscl import RecurrentActor, acting, greedy_outcomes, play_episode
 from mapf_world.env import MapfEnv
 from mapf_world.grid import DELTAS, STAY
 from mapf_world.planners.odrmstar import OBJECTIVES
@@ -47,15 +49,19 @@ def model_last_action(meta: dict) -> str:
 
 
 def run_rung(path, rung: int, cases: int, seed: int = 0, density: float = 0.3, max_steps: int = 256,
-             progress: bool = True, agents: list[int] | None = None) -> list[dict]:
-    """One row per team size of the rung (only those in `agents`, when given)."""
+             progress: bool = True, agents: list[int] | None = None, epsilon: float = 0.0) -> list[dict]:
+    """One row per team size of the rung (only those in `agents`, when given). `epsilon` > 0: each agent acts at
+    random with that probability (a diagnostic of how much the greedy rule's fixed points cost; no rung is passed
+    that way)."""
+    if not 0.0 <= epsilon < 1.0:
+        raise ValueError(f"epsilon must lie in [0, 1), got {epsilon}")
     if rung not in RUNGS:
         raise ValueError(f"rung must be one of {sorted(RUNGS)}, got {rung}")
     sizes = [a for a, _, _ in RUNGS[rung][1]]
     if agents is not None and not set(agents) & set(sizes):
         raise ValueError(f"rung {rung} has team sizes {sizes}, none of --agents {agents}")
     net, _, meta = load_model(path)
-    forward, mode = InferenceNet(net), model_last_action(meta)
+    forward, mode = acting(net), model_last_action(meta)
     rows = []
     for n_agents, side, bar in RUNGS[rung][1]:
         if agents is not None and n_agents not in agents:
@@ -63,11 +69,12 @@ def run_rung(path, rung: int, cases: int, seed: int = 0, density: float = 0.3, m
         insts = generated_cases(seed, COMPARE_STREAM, [n_agents], cases, side, density)
         t0 = time.perf_counter()
         outcomes = greedy_outcomes(forward, tqdm(insts, desc=f"rung {rung}: {n_agents} agents, {side}x{side}", unit="case",
-                                                 disable=not progress), mode, max_steps)
+                                                 disable=not progress), mode, max_steps, epsilon)
         success = float(np.mean([s for s, _ in outcomes]))
         rows.append({"rung": rung, "agents": n_agents, "map": side, "cases": cases, "success_rate": success,
                      "successes": int(sum(s for s, _ in outcomes)),
-                     "average_step": float(np.mean([t for _, t in outcomes])), "bar": bar, "passed": success >= bar,
+                     "average_step": float(np.mean([t for _, t in outcomes])), "bar": bar,
+                     "passed": success >= bar and epsilon == 0, "epsilon": epsilon,
                      "last_action": mode, "seconds": round(time.perf_counter() - t0, 1)})
     return rows
 
@@ -88,7 +95,7 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
     from mapf_policy.train.expert import ExpertFailed, make_oracle
 
     net, _, meta = load_model(path)
-    forward, mode = InferenceNet(net), model_last_action(meta)
+    forward, mode = acting(net), model_last_action(meta)
     out = {"failed_cases": 0, "fixed_point": 0, "refused": 0, "refused_with_room": 0, "refused_is_argmax": 0,
            "label_is_refused_move": 0, "labelled": 0, "blockers": 0, "blocker_on_goal": 0, "blocker_label_moves": 0,
            "blocker_label_rank": [], "lead": []}
@@ -101,8 +108,11 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
         trail = np.stack([o["position"] for o in steps["obs"][-11:]])
         out["fixed_point"] += int((trail == trail[-1]).all())
         obs, action, refused = steps["obs"][-2], steps["action"][-1], steps["failed"][-1]
-        with torch.inference_mode():
-            q = forward(*network_inputs(obs, forward.cfg)).numpy()
+        if isinstance(forward, RecurrentActor):  # its last call was at obs, with the memory it had then
+            q = forward.q.numpy()
+        else:
+            with torch.inference_mode():
+                q = forward(*network_inputs(obs, forward.cfg)).numpy()
         before = obs["position"].astype(np.int64)  # the cells at the last step
         try:
             label = make_oracle("odrmstar", env.grid, env.goals, env.dist, expert_epsilon, 2.0,
@@ -135,7 +145,8 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
 
 
 def markdown(model: str, rows: list[dict]) -> str:
-    lines = [f"model `{model}`, greedy argmax, held-out cases (seed stream {COMPARE_STREAM}), last action: {rows[0]['last_action']}",
+    rule = "greedy argmax" if not rows[0].get("epsilon") else f"epsilon-greedy {rows[0]['epsilon']} (a diagnostic, not a rung check)"
+    lines = [f"model `{model}`, {rule}, held-out cases (seed stream {COMPARE_STREAM}), last action: {rows[0]['last_action']}",
              "", "| rung | agents | map | cases | success | average step | bar | passed |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['rung']} | {r['agents']} | {r['map']}x{r['map']} | {r['cases']} | {r['success_rate']:.3f} "
@@ -151,6 +162,9 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0, help="seed of the held-out cases (default 0)")
     p.add_argument("--agents", type=int, nargs="+", help="only these team sizes of the rungs (rung 4: 1 2 4 8 16 32 64)")
     p.add_argument("--json", help="also write the rows here")
+    p.add_argument("--epsilon", type=float, default=0.0,
+                   help="diagnostic: each agent acts at random with this probability (0: greedy, the paper's rule; a "
+                        "rung is passed only greedy)")
     p.add_argument("--stuck", action="store_true",
                    help="also report, for each rung's failed cases, the refused moves at the last step (stuck_report)")
     p.add_argument("--stuck-expert-objective", default="free_goal_wait", choices=sorted(OBJECTIVES),
@@ -161,10 +175,14 @@ def main(argv=None) -> int:
     if args.cases < 1:
         print("error: --cases must be >= 1", file=sys.stderr)
         return 2
+    if args.stuck and args.epsilon > 0:
+        print("error: --stuck reports greedy fixed points; drop --epsilon", file=sys.stderr)
+        return 2
     torch.set_num_threads(1)
     try:
         rows = [r for k in args.rung
-                for r in run_rung(args.model, k, args.cases, args.seed, progress=not args.no_progress, agents=args.agents)]
+                for r in run_rung(args.model, k, args.cases, args.seed, progress=not args.no_progress, agents=args.agents,
+                                  epsilon=args.epsilon)]
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
