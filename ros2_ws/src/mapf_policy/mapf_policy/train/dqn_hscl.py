@@ -608,13 +608,13 @@ def recurrent_batch(net: QNetwork, target: QNetwork, online_fast, target_fast, a
     n_seq, hid = max(1, args.batch_size // length), net.cfg.hidden_features
     seq, valid = replay.sample_sequences(n_seq, length, args.n_step, rng)
 
-    def inputs(pre: str, rows=None) -> tuple:
-        keys = (pre + "fov", pre + "last_action", pre + "position")
-        out = tuple(seq[k] if rows is None else seq[k].view(n_seq, width, *seq[k].shape[1:])[:, :length].reshape(
-            -1, *seq[k].shape[1:]) for k in keys)
+    def first(v):  # (S * W, ...) rows -> the first `length` steps of each sequence, (S * L, ...)
+        return v.reshape(n_seq, width, *v.shape[1:])[:, :length].reshape(-1, *v.shape[1:])
+
+    def inputs(pre: str, pick=lambda v: v) -> tuple:
+        out = tuple(pick(seq[pre + k]) for k in ("fov", "last_action", "position"))
         if args.still_bins:
-            still = seq[pre + "still"] if rows is None else seq[pre + "still"].view(n_seq, width)[:, :length].reshape(-1)
-            out += (still_onehot(still, args.still_bins),)
+            out += (still_onehot(pick(seq[pre + "still"]), args.still_bins),)
         return out
 
     def unroll(model: QNetwork, fast, h: torch.Tensor) -> torch.Tensor:
@@ -628,12 +628,12 @@ def recurrent_batch(net: QNetwork, target: QNetwork, online_fast, target_fast, a
     h0 = seq["h_in"].view(n_seq, width, hid)[:, 0]
     hs = unroll(net, online_fast, h0)
     q = net.q_values(hs[:, :length].reshape(-1, hid))
-    keep = valid[:, :length].reshape(-1)
+    keep = first(valid.reshape(-1))
     pos = torch.arange(length).repeat(n_seq)
     which = torch.arange(n_seq).repeat_interleave(length)
-    prev = pos + seq["m"].view(n_seq, width)[:, :length].reshape(-1) - 1  # <= width - 1 since m <= n_step
+    prev = pos + first(seq["m"]) - 1  # <= width - 1 since m <= n_step
     prev = prev.clamp(0, width - 1)  # rows past their episode (masked) may hold anything
-    nxt = inputs("next_", rows=True)
+    nxt = inputs("next_", first)
     with torch.inference_mode():
         ht = unroll(target, target_fast, h0)
         next_q = target.q_values(target.gru(target_fast.embed(*nxt), ht[which, prev]))
@@ -643,8 +643,8 @@ def recurrent_batch(net: QNetwork, target: QNetwork, online_fast, target_fast, a
     rows = {}
     for k, v in seq.items():
         if isinstance(v, torch.Tensor) and v.dim() >= 1 and v.shape[0] == n_seq * width:
-            rows[k] = v.view(n_seq, width, *v.shape[1:])[:, :length].reshape(-1, *v.shape[1:])[keep]
-    rows["index"] = seq["index"].reshape(n_seq, width)[:, :length].reshape(-1)[keep.numpy()]
+            rows[k] = first(v)[keep]
+    rows["index"] = first(seq["index"])[keep.numpy()]
     return (rows, q[keep], next_q[keep].clone(), None if next_online is None else next_online[keep].clone())
 
 
