@@ -119,3 +119,16 @@ def test_a_recurrent_run_trains_on_sequences_and_the_ladder_plays_it_with_memory
     exported = subprocess.run([str(repo_root / "scripts" / "export_model"), str(tmp_path / "runs" / "g" / "last.pt")],
                               capture_output=True, text=True, timeout=120)
     assert exported.returncode != 0 and "recurrent" in exported.stderr
+
+
+@pytest.mark.slow
+def test_a_heading_run_stores_seven_channels_and_the_ladder_plays_it_with_them(repo_root, tmp_path):
+    run = _run(repo_root, tmp_path, "--run-name", "h", "--heading", "--double-dqn")
+    assert run.returncode == 0, run.stderr[-3000:]
+    _, cfg, meta = load_model(tmp_path / "runs" / "h" / "last.pt")
+    assert cfg.heading and cfg.fov_channels == 7 and meta["train_args"]["heading"] is True
+    out = subprocess.run([str(repo_root / "scripts" / "ladder"), str(tmp_path / "runs" / "h" / "last.pt"), "--rung", "1",
+                          "--cases", "3", "--json", str(tmp_path / "h.json"), "--stuck", "--no-progress"],
+                         capture_output=True, text=True, timeout=120)
+    rows = json.loads((tmp_path / "h.json").read_text())
+    assert out.returncode == (0 if rows[0]["passed"] else 1) and rows[0]["cases"] == 3, out.stderr[-2000:]

@@ -465,3 +465,42 @@ def test_a_greedy_fixed_point_ends_the_episode_and_bootstraps_from_its_exact_val
     assert plain["boot_gamma"].reshape(3, 2)[2].tolist() == pytest.approx([0.9, 0.9])  # a time limit bootstraps
     with pytest.raises(ValueError, match="stuck_value"):
         Args(stuck_value=True).validate()
+
+
+def test_stuck_rescue_hands_a_greedy_fixed_point_to_the_expert_and_it_leads_the_team_out():
+    """stuck_rescue: the head-on pushers above push greedily until they have stood still 3 steps; from then on the
+    expert (ODrM*) drives, with no random steps although epsilon is 1, and its way out solves the case."""
+    from mapf_policy.train.expert import make_oracle
+
+    grid = np.zeros((3, 3), np.uint8)
+    env = MapfEnv(grid, np.array([[1, 0], [1, 1]]), np.array([[1, 1], [1, 0]]), max_steps=20, last_action="executed")
+
+    def push(fov, last, pos):
+        return torch.tensor([[0.0, 0, 0, 0, 1], [0.0, 0, 0, 1, 0]])
+
+    oracle = make_oracle("odrmstar", env.grid, env.goals, env.dist, 1.0, 2.0)
+    steps, stats = play_episode(push, env, 1.0, np.random.default_rng(1), oracle, 5.0, greedy_until_stuck=3,
+                                stuck_rescue=True)
+    acts, labels = np.stack(steps["action"]), np.stack(steps["expert"])
+    assert acts[:3].tolist() == [[4, 3]] * 3 and (labels[:3] >= 0).all()  # greedy, and labelled (DAgger)
+    assert stats["rescued"] and stats["success"] and stats["expert_drove"]
+    assert np.array_equal(acts[3:], labels[3:])  # the expert's actions, no random ones
+    steps, stats = play_episode(push, env, 1.0, np.random.default_rng(1), oracle, 5.0, greedy_until_stuck=3)
+    assert not stats["rescued"] and (np.stack(steps["action"])[3:] != np.stack(steps["expert"])[3:]).any()
+    with pytest.raises(ValueError, match="stuck_rescue"):
+        Args(stuck_rescue=True).validate()
+    with pytest.raises(ValueError, match="stuck_rescue"):
+        Args(stuck_rescue=True, greedy_fraction=0.25, stuck_steps=3, stuck_value=True).validate()
+    Args(stuck_rescue=True, greedy_fraction=0.25, stuck_steps=3).validate()
+
+
+def test_ce_imitation_is_the_cross_entropy_of_the_expert_action_under_the_advantage():
+    q = torch.tensor([[0.3, 0.1, 0.0, -0.2, 0.5], [1.0, 1.2, 0.9, 0.8, 1.1]])
+    batch = {"action": torch.tensor([0, 1]), "ret": torch.zeros(2), "boot_gamma": torch.zeros(2),
+             "expert": torch.tensor([4, -1])}
+    args = Args(imitation="ce", temperature=0.5)
+    _, l_ce, _ = losses(q, torch.zeros(2, 5), batch, args)
+    a = q[0] - q[0].mean()
+    assert float(l_ce) == pytest.approx(float(-torch.log_softmax(a / 0.5, dim=0)[4]), rel=1e-6)
+    with pytest.raises(ValueError, match="imitation"):
+        Args(imitation="bc").validate()

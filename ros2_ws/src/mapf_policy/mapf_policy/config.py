@@ -93,6 +93,18 @@ class NetworkConfig:
     key 'still'), 'refused', its consecutive refused moves (key 'refused_run'; 0 after a stay or a move), or
     'contact', the steps it has stood still with the same neighbour cells held by agents (key 'contact_run')."""
 
+    heading: bool = False
+    """Beyond the paper: a seventh fov channel, the cells the other agents face (each one's cell plus its last
+    requested move; MapfEnv(heading=True)). A parked agent cannot tell a neighbour that needs its cell from one
+    passing by (issue 20's greedy fixed points); a neighbour that keeps facing its cell tells it, with no
+    communication. Adds 64 x 9 weights to the first conv and widens the self-attention to 7 channels.
+    False: the paper's six channels (every model before it)."""
+
+    @property
+    def fov_channels(self) -> int:
+        """Channels of the fov the network reads: the paper's six, plus the heading channel if any."""
+        return self.in_channels + int(self.heading)
+
     def validate(self) -> None:
         if self.fov_size < 9 or self.fov_size % 2 == 0:
             raise ValueError(f"fov_size must be an odd integer >= 9 (four 3x3 convs), got {self.fov_size}")

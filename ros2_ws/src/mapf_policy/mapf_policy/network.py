@@ -84,8 +84,8 @@ class QNetwork(nn.Module):
         cfg = cfg or NetworkConfig()
         cfg.validate()
         self.cfg = cfg
-        self.attention = SelfAttention(cfg.in_channels, cfg.attention_eta) if cfg.self_attention else None
-        layers, c_in = [], cfg.in_channels
+        self.attention = SelfAttention(cfg.fov_channels, cfg.attention_eta) if cfg.self_attention else None
+        layers, c_in = [], cfg.fov_channels
         for c_out in cfg.conv_channels:
             layers += [nn.Conv2d(c_in, c_out, 3, stride=1, padding=0), nn.ReLU(inplace=True)]
             c_in = c_out
@@ -110,7 +110,7 @@ class QNetwork(nn.Module):
                      still: torch.Tensor | None = None) -> None:
         """ValueError naming the input whose shape does not fit (B, 6, l, l), (B, 5), (B, 2), and (B, still_bins)
         for a network with the still input (None otherwise)."""
-        l, c, a = self.cfg.fov_size, self.cfg.in_channels, self.cfg.n_actions
+        l, c, a = self.cfg.fov_size, self.cfg.fov_channels, self.cfg.n_actions
         if fov.dim() != 4 or tuple(fov.shape[1:]) != (c, l, l):
             raise ValueError(f"fov must have shape (B, {c}, {l}, {l}), got {tuple(fov.shape)}")
         b = fov.shape[0]

@@ -17,6 +17,9 @@ built with NetworkConfig.still_bins > 0 read it, or one of two other counts: `re
 refused moves (0 after a move or a stay), and `contact_run`, the consecutive steps in which it stood still
 with the same non-empty set of cells next to it (4-neighbourhood) held by agents (0 when it moved, when that
 set changed or is empty). An agent can count all three from its own requests, positions and fields of view.
+
+`heading=True` (beyond the paper; off everywhere by default) appends a seventh fov channel: the cells the
+other agents face, each one's cell plus its last requested move (ObservationBuilder.headings).
 """
 from __future__ import annotations
 
@@ -39,7 +42,8 @@ LAST_ACTION_MODES = ("requested", "executed")
 class MapfEnv:
     """One instance (map, starts, goals). Arrays follow docs/ARCHITECTURE.md: cells are (row, col)."""
 
-    def __init__(self, grid, starts, goals, fov_size: int = 9, max_steps: int = 256, last_action: str = "requested"):
+    def __init__(self, grid, starts, goals, fov_size: int = 9, max_steps: int = 256, last_action: str = "requested",
+                 heading: bool = False):
         # Cells on the map, free, distinct, goals reachable (cheap component labels; the BFS waits for reset()).
         self._grid, self._starts, self._goals = check_instance(grid, starts, goals)
         if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
@@ -49,10 +53,12 @@ class MapfEnv:
         if last_action not in LAST_ACTION_MODES:
             raise ValueError(f"last_action must be one of {LAST_ACTION_MODES}, got {last_action!r}")
         self.last_action_mode = last_action
+        self.heading = bool(heading)
         self._dist: np.ndarray | None = None
         self._builder: ObservationBuilder | None = None
         self._positions = self._starts.copy()
         self._last_actions = np.zeros(len(self._starts), dtype=np.int64)
+        self._requested = np.zeros(len(self._starts), dtype=np.int64)
         self._still = np.zeros(len(self._starts), dtype=np.int64)
         self._refused_run = np.zeros(len(self._starts), dtype=np.int64)
         self._contact_run = np.zeros(len(self._starts), dtype=np.int64)
@@ -109,7 +115,11 @@ class MapfEnv:
     def observe(self) -> dict:
         """fov, last_action, position (ObservationBuilder.build); still and refused_run, (N,) counts of steps on the
         same cell and of consecutive refused moves."""
-        return self.observation_builder.build(self._positions, self._last_actions) | {
+        obs = self.observation_builder.build(self._positions, self._last_actions)
+        if self.heading:
+            facing = self.observation_builder.headings(self._positions, self._requested)
+            obs["fov"] = np.concatenate([obs["fov"], facing[:, None]], axis=1)
+        return obs | {
             "still": self._still.copy(), "refused_run": self._refused_run.copy(), "contact_run": self._contact_run.copy()}
 
     # --- gymnasium-style API --------------------------------------------------------------------
@@ -117,6 +127,7 @@ class MapfEnv:
         """Back to the starts. The BFS runs on the first reset only (cached per instance)."""
         self._positions = self._starts.copy()
         self._last_actions = np.zeros(self.n_agents, dtype=np.int64)
+        self._requested = np.zeros(self.n_agents, dtype=np.int64)
         self._still = np.zeros(self.n_agents, dtype=np.int64)
         self._refused_run = np.zeros(self.n_agents, dtype=np.int64)
         self._contact_run = np.zeros(self.n_agents, dtype=np.int64)
@@ -144,6 +155,7 @@ class MapfEnv:
         self._contact_run = np.where(same, self._contact_run + 1, 0)
         self._positions = new_pos
         self._last_actions = np.where(failed, STAY, acts) if self.last_action_mode == "executed" else acts
+        self._requested = acts.copy()
         self._step += 1
         rewards = np.full(self.n_agents, REWARD_MOVE, dtype=np.float32)
         rewards[acts == STAY] = REWARD_STAY_OFF_GOAL

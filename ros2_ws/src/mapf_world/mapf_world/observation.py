@@ -8,6 +8,12 @@ fov (6, l, l) float32 centred on the agent, channels in this order:
        cells that cannot reach the goal and cells outside the map are 0.
 last_action (5,) float32 one-hot; position (2,) float32 raw (row, col).
 
+Beyond the paper, optional (`headings`, MapfEnv(heading=True) appends it to fov as channel 6): the cell in
+front of each other agent, that is its cell plus its last requested move (nothing for a stay, nor off the
+map), 1 where at least one other agent faces that cell. A differential-drive robot turns towards the cell it asks for, so a
+motion-capture ground station sees this without any robot telling another; a parked agent that a neighbour
+keeps pushing into sees its own cell marked.
+
 Everything that depends only on the map and the goals is precomputed once, padded by l // 2, so a
 step only gathers windows: row r, col c of the map is row r + l//2, col c + l//2 of the padded
 arrays, and the window of an agent at (r, c) starts at padded (r, c).
@@ -111,6 +117,22 @@ class ObservationBuilder:
         one_hot = np.zeros((n, N_ACTIONS), dtype=np.float32)
         one_hot[self._rows, acts] = 1.0
         return {"fov": fov, "last_action": one_hot, "position": pos.astype(np.float32)}
+
+    def headings(self, positions, requested) -> np.ndarray:
+        """(N, l, l) float32: in each agent's window, 1 at the cells that other agents face (their cell plus
+        their last requested move; a stay faces nothing). The agent's own facing cell is not marked."""
+        pos = self._check_positions(positions)
+        acts = check_actions(requested, self.n_agents)
+        r = self._radius
+        counts = np.zeros_like(self._obstacles)  # padded map
+        target = pos + DELTAS[acts]
+        movers = np.flatnonzero(acts != 0)
+        h, w = self.grid.shape
+        on_map = movers[(target[movers] >= 0).all(1) & (target[movers, 0] < h) & (target[movers, 1] < w)]
+        np.add.at(counts, (r + target[on_map, 0], r + target[on_map, 1]), 1.0)  # a cell off the map is not marked
+        out = sliding_window_view(counts, (self.fov_size, self.fov_size))[pos[:, 0], pos[:, 1]].copy()
+        out[on_map, r + DELTAS[acts[on_map], 0], r + DELTAS[acts[on_map], 1]] -= 1.0  # not one's own
+        return np.minimum(out, 1.0)
 
     def build_one(self, i: int, positions, last_action) -> dict:
         """Observation of agent i alone (no batch dimension); positions are all agents' cells."""

@@ -78,6 +78,9 @@ class Args:
     still_count: str = "cell"
     """What that count is (NetworkConfig.still_count): 'cell' (steps on the same cell), 'refused' (consecutive
     refused moves) or 'contact' (steps standing still beside the same unmoved agents)."""
+    heading: bool = False
+    """Beyond the paper: the fov gets a seventh channel, the cells the other agents face (NetworkConfig.heading,
+    MapfEnv(heading=True)); False: the paper's six channels."""
     recurrent: bool = False
     """Beyond the paper (DHC's design): a GRU memory per agent (NetworkConfig.recurrent), trained on sequences of
     `sequence_length` steps of one agent, each started from the memory its actor had there (R2D2's stored state).
@@ -141,13 +144,14 @@ class Args:
     imitation: str = "hscl"
     """The imitation term: 'hscl' (the paper's eq. 13) or 'margin' (beyond the paper: DQfD's large-margin loss,
     losses.margin_loss, which only puts the expert's action `margin` above the rest and leaves their order to the
-    DQN term; HSCL's optimum makes them equal). The log's hscl columns then hold the margin term."""
+    DQN term; HSCL's optimum makes them equal), or 'ce' (beyond the paper: cross-entropy of the expert's action under
+    softmax(A / temperature), behaviour cloning's loss). The log's hscl columns then hold that term."""
     margin: float = 0.1
     """Margin of the 'margin' imitation term (about the value of one wasted step, 2 x 0.075)."""
     tau_h: float = 0.1
     """Hot-vector offset of Table I."""
     temperature: float = 0.1
-    """HSCL temperature T (eq. 13)."""
+    """HSCL temperature T (eq. 13); also the 'ce' imitation term's (its logits are A / T)."""
     replay_capacity: int = 200_000
     """Rows kept in the replay (oldest overwritten)."""
     priority_alpha: float = 0.0
@@ -193,6 +197,11 @@ class Args:
     then sees the same observation each step); its last rows bootstrap from the exact value of staying there for ever
     under greedy play, r_i / (1 - gamma) with r_i agent i's last step reward (-7.5 for a wait off the goal, -50 for a
     refused move, 0 on the goal), instead of exploring out of it. False: exploration starts there (stuck_steps)."""
+    stuck_rescue: bool = False
+    """Beyond the paper (DAgger with the expert's way out): in a greedy actor episode (greedy_fraction, stuck_steps
+    k >= 1), once the team has stood still k steps the expert drives it from that fixed point on, with no random
+    steps, so the replay holds the greedy team's own deadlocks together with the expert's joint way out of them
+    (its labels for HSCL, its outcome for the DQN term). False: exploration starts there (stuck_steps)."""
     expert: str = "odrmstar"
     """'odrmstar' (the paper's) or 'shortest_path' (a stand-in for tests)."""
     expert_order: str = "index"
@@ -246,6 +255,8 @@ class Args:
         need(self.stuck_steps >= 0, f"stuck_steps must be >= 0, got {self.stuck_steps}")
         need(not self.stuck_value or (self.stuck_steps >= 2 and self.greedy_fraction > 0),
              "stuck_value needs greedy_fraction > 0 and stuck_steps >= 2 (a fixed point of the greedy team)")
+        need(not self.stuck_rescue or (self.stuck_steps >= 1 and self.greedy_fraction > 0 and not self.stuck_value),
+             "stuck_rescue needs greedy_fraction > 0 and stuck_steps >= 1, and not stuck_value (which ends the episode there)")
         need(self.blocking_penalty <= 0, f"blocking_penalty is a penalty: must be <= 0, got {self.blocking_penalty}")
         need(self.blocking_margin >= 0, f"blocking_margin must be >= 0, got {self.blocking_margin}")
         need(self.still_bins == 0 or self.still_bins >= 2, f"still_bins must be 0 or >= 2, got {self.still_bins}")
@@ -264,7 +275,7 @@ class Args:
         need(0.0 < self.gamma <= 1.0, f"gamma must lie in (0, 1], got {self.gamma}")
         need(self.dqn_weight >= 0 and self.hscl_weight >= 0 and self.dqn_weight + self.hscl_weight > 0,
              "dqn_weight and hscl_weight must be >= 0, not both 0")
-        need(self.imitation in ("hscl", "margin"), f"imitation must be hscl or margin, got {self.imitation!r}")
+        need(self.imitation in ("hscl", "margin", "ce"), f"imitation must be hscl, margin or ce, got {self.imitation!r}")
         need(self.margin > 0, f"margin must be > 0, got {self.margin}")
         need(0.0 < self.tau_h < 0.2, f"tau_h must lie in (0, 0.2), got {self.tau_h}")
         need(self.lr_end >= 0, f"lr_end must be >= 0, got {self.lr_end}")
@@ -283,7 +294,7 @@ class Args:
 
     def network_config(self) -> NetworkConfig:
         return NetworkConfig(dueling=self.dueling, still_bins=self.still_bins, still_count=self.still_count,
-                             recurrent=self.recurrent, **ABLATIONS.get(self.variant, {}))
+                             recurrent=self.recurrent, heading=self.heading, **ABLATIONS.get(self.variant, {}))
 
 
 def learning_rate(args: Args, step: int) -> float:
@@ -305,7 +316,7 @@ def parse_stage(text: str) -> tuple[int, int]:
 
 
 # --- episodes -> replay rows --------------------------------------------------------------------------------
-ROW_SPECS = {  # one agent's n-step transition; fov values are 0/1
+ROW_SPECS = {  # one agent's n-step transition; fov values are 0/1 (7 channels with Args.heading: Replay widens it)
     "fov": (np.uint8, (6, 9, 9)), "last_action": (np.int8, ()), "position": (np.int16, (2,)),
     "action": (np.int8, ()), "ret": (np.float32, ()), "boot_gamma": (np.float32, ()),
     "next_fov": (np.uint8, (6, 9, 9)), "next_last_action": (np.int8, ()), "next_position": (np.int16, (2,)),
@@ -372,7 +383,7 @@ def acting(net: QNetwork):
 def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle=None, budget: float = 0.0,
                  expert_drives: bool = False, greedy_until_stuck: int = 0,
                  blocking: tuple[float, int] = (0.0, 0), goal_exploration: bool = True,
-                 stuck_ends: bool = False) -> tuple[dict, dict]:
+                 stuck_ends: bool = False, stuck_rescue: bool = False) -> tuple[dict, dict]:
     """One episode, every agent acting on its own observation (all in one batch).
 
     Actions: argmax Q (the paper's greedy rule; ties to the lowest index), or the expert's when
@@ -385,7 +396,8 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
     (T steps, N agents; obs has T + 1 entries) and stats. The network's inputs follow `forward.cfg`
     (network_inputs); a plain function stands for a network with the paper's inputs. `blocking` (penalty, margin)
     adds the penalty to the reward of every agent that blocking_agents finds after a step (beyond the paper). With
-    `stuck_ends`, the episode ends instead where exploration would start (stats["fixed_point"])."""
+    `stuck_ends`, the episode ends instead where exploration would start (stats["fixed_point"]); with `stuck_rescue`
+    (and `oracle`), the expert drives from there on, with no random steps (stats["rescued"])."""
     cfg = getattr(forward, "cfg", NetworkConfig())
     recurrent = isinstance(forward, RecurrentActor)
     obs, _ = env.reset()
@@ -394,7 +406,7 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
         forward.reset(env.n_agents)
         steps["h_in"] = []
     spent, labelled, done, terminated, blocked = 0.0, 0, False, False, 0
-    still, eps_now = 0, (0.0 if greedy_until_stuck > 0 else epsilon)
+    still, eps_now, rescued = 0, (0.0 if greedy_until_stuck > 0 else epsilon), False
     while not done:
         expert = np.full(env.n_agents, -1, dtype=np.int64)
         if oracle is not None and spent < budget:
@@ -407,6 +419,8 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
             spent += time.perf_counter() - t0
         if recurrent:  # the memory follows every observation, also while the expert drives
             steps["h_in"].append(forward.h.numpy().astype(np.float16))
+        if rescued and expert[0] < 0:  # the expert failed or its budget is spent: explore out instead
+            eps_now = epsilon
         if expert_drives and expert[0] >= 0:
             actions = expert.copy()
             if recurrent:
@@ -426,14 +440,16 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
             reward, blocked = reward + blocking[0] * blockers, blocked + int(blockers.sum())
         still = still + 1 if np.array_equal(before, env.positions) else 0
         fixed_point = greedy_until_stuck > 0 and still >= greedy_until_stuck and not terminated
-        if fixed_point:
+        if fixed_point and stuck_rescue and oracle is not None:
+            expert_drives = rescued = True
+        elif fixed_point and not rescued:
             eps_now = epsilon
         for k, v in (("obs", obs), ("action", actions), ("reward", reward), ("expert", expert), ("failed", info["failed"])):
             steps[k].append(v)
         done = terminated or truncated or (fixed_point and stuck_ends)
     return steps, {"success": bool(terminated), "steps": env.step_count, "n_agents": env.n_agents,
                    "fixed_point": bool(fixed_point and stuck_ends),
-                   "labelled": labelled, "oracle_s": spent, "expert_drove": expert_drives and labelled > 0,
+                   "labelled": labelled, "oracle_s": spent, "expert_drove": expert_drives and labelled > 0, "rescued": rescued,
                    "blocked": blocked}
 
 
@@ -525,11 +541,13 @@ def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasi
 class Replay:
     """Ring buffer of ROW_SPECS rows; uniform sampling, or prioritised by |TD error| (alpha > 0)."""
 
-    def __init__(self, capacity: int, alpha: float = 0.0, beta: float = 0.4, hidden: int = 0):
-        """`hidden` > 0: rows also keep a recurrent actor's memory "h_in" of that width (sample_sequences)."""
+    def __init__(self, capacity: int, alpha: float = 0.0, beta: float = 0.4, hidden: int = 0, channels: int = 6):
+        """`hidden` > 0: rows also keep a recurrent actor's memory "h_in" of that width (sample_sequences).
+        `channels`: of the stored fov (NetworkConfig.fov_channels)."""
         self.capacity, self.size, self.cursor = capacity, 0, 0
         self.alpha, self.beta = alpha, beta
-        self.specs = ROW_SPECS | ({"h_in": (np.float16, (hidden,))} if hidden else {})
+        fov = (np.uint8, (channels,) + ROW_SPECS["fov"][1][1:])
+        self.specs = ROW_SPECS | {"fov": fov, "next_fov": fov} | ({"h_in": (np.float16, (hidden,))} if hidden else {})
         self.data = {k: np.zeros((capacity,) + shape, dtype=dt) for k, (dt, shape) in self.specs.items()}
         self.priority = np.zeros(capacity)  # (|TD| + 0.001)^alpha of each row
         self.max_priority = 1.0
@@ -677,6 +695,8 @@ def losses(q: torch.Tensor, next_q_target: torch.Tensor, batch: dict, args: Args
         scores = q - q.mean(dim=1, keepdim=True) if args.dueling else q  # the advantage A of the dueling split
         if args.imitation == "margin":
             l_hscl = margin_loss(scores[labelled], batch["expert"][labelled], args.margin)
+        elif args.imitation == "ce":
+            l_hscl = F.cross_entropy(scores[labelled] / args.temperature, batch["expert"][labelled])
         else:
             l_hscl = hscl_loss(scores[labelled], batch["expert"][labelled], args.tau_h, args.temperature)
     else:
@@ -697,10 +717,12 @@ def correlation(a: torch.Tensor, b: torch.Tensor) -> float:
 
 def greedy_outcomes(forward, cases, last_action: str, max_steps: int, epsilon: float = 0.0) -> list[tuple[bool, int]]:
     """(success, steps) per case with argmax Q and no exploration; a failure counts max_steps. With `epsilon` > 0
-    (a diagnostic, not the paper's rule) each agent acts at random with that probability (seeded per case)."""
+    (a diagnostic, not the paper's rule) each agent acts at random with that probability (seeded per case).
+    The observation has the heading channel when forward's network reads it (forward.cfg.heading)."""
     outcomes = []
     for k, inst in enumerate(cases):
-        env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=last_action)
+        env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=last_action,
+                      heading=getattr(forward, "cfg", NetworkConfig()).heading)
         _, stats = play_episode(forward, env, epsilon, np.random.default_rng(k if epsilon > 0 else 0))
         outcomes.append((stats["success"], stats["steps"] if stats["success"] else max_steps))
     return outcomes
@@ -715,7 +737,7 @@ def greedy_success(forward, cases: list, last_action: str, max_steps: int) -> tu
 TRAIN_COLUMNS = ("step", "stage", "episodes", "l_dqn", "l_hscl", "hscl_weight", "dqn_share", "td_abs", "td_refused",
                  "refused_minus_stay", "refused_rows", "adv_norm", "q_mean", "mc_return_mean", "q_return_corr", "agreement",
                  "train_success", "train_steps", "mean_team", "samples_per_s", "learner_steps_per_s", "env_rows_per_s",
-                 "epsilon", "blocked_share", "elapsed_s")
+                 "epsilon", "blocked_share", "rescued_episodes", "elapsed_s")
 EVAL_COLUMNS = ("step", "stage", "agents", "size", "success_rate", "average_step")
 
 
@@ -742,7 +764,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
     online_q, target_q, act_q = FastForward(net), InferenceNet(target), acting(net)
     params = [p for p in net.parameters()]
     replay = Replay(args.replay_capacity, args.priority_alpha, args.priority_beta,
-                    hidden=ncfg.hidden_features if args.recurrent else 0)
+                    hidden=ncfg.hidden_features if args.recurrent else 0, channels=ncfg.fov_channels)
     valid = {k: generated_cases(args.seed, VALID_STREAM, [a], args.eval_cases, s, args.density)
              for k, (a, s) in enumerate(stages)}
     train_log, eval_log = CsvLog(run_dir / "train.csv", TRAIN_COLUMNS), CsvLog(run_dir / "eval.csv", EVAL_COLUMNS)
@@ -763,7 +785,8 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             agents, size = stages[k]
             ep_rng = instance_rng(args.seed, ACTOR_STREAM, state["episodes"])
             inst = generate_instance(ep_rng, size=size, density=args.density, n_agents=agents)
-            env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=args.max_episode_steps, last_action=args.last_action)
+            env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=args.max_episode_steps, last_action=args.last_action,
+                          heading=args.heading)
             drive = ep_rng.random() < args.expert_drive_fraction
             oracle = None
             if drive or ep_rng.random() < args.relabel_fraction:
@@ -771,6 +794,10 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                                      min(args.expert_time_limit, args.relabel_time_budget), order=args.expert_order,
                                      objective=args.expert_objective)
             greedy = not drive and ep_rng.random() < args.greedy_fraction
+            if greedy and args.stuck_rescue and oracle is None:  # the expert's way out needs the expert
+                oracle = make_oracle(args.expert, env.grid, env.goals, env.dist, args.expert_epsilon,
+                                     min(args.expert_time_limit, args.relabel_time_budget), order=args.expert_order,
+                                     objective=args.expert_objective)
             epsilon = 0.0 if greedy and not args.stuck_steps else eps_at(state["step"])
             if args.agent_eps_spread:
                 epsilon = np.minimum(1.0, 2.0 * epsilon * rng.random(agents))
@@ -778,7 +805,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                                         greedy_until_stuck=args.stuck_steps if greedy else 0,
                                         blocking=(args.blocking_penalty, args.blocking_margin),
                                         goal_exploration=args.goal_exploration,
-                                        stuck_ends=args.stuck_value and greedy)
+                                        stuck_ends=args.stuck_value and greedy, stuck_rescue=args.stuck_rescue and greedy)
             rows = episode_rows(steps, stats["success"], args.gamma, args.n_step, args.feasible_labels,
                                 STILL_KEYS[args.still_count], goals=None if args.parked_labels else env.goals,
                                 episode=state["episodes"], fixed_point=stats["fixed_point"])
@@ -909,6 +936,7 @@ def _log_row(args: Args, state: dict, window: dict, session_t0: float, epsilon: 
             "samples_per_s": window["steps"] * args.batch_size / dt, "learner_steps_per_s": window["steps"] / dt,
             "env_rows_per_s": window["rows"] / dt, "epsilon": epsilon,
             "blocked_share": sum(e["blocked"] for e in eps) / max(1, sum(e["steps"] * e["n_agents"] for e in eps)),
+            "rescued_episodes": sum(e["rescued"] for e in eps),
             "elapsed_s": round(state["elapsed"] + time.monotonic() - session_t0, 1)}
 
 

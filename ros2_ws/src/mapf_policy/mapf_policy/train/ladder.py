@@ -100,7 +100,7 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
            "label_is_refused_move": 0, "labelled": 0, "blockers": 0, "blocker_on_goal": 0, "blocker_label_moves": 0,
            "blocker_label_rank": [], "lead": []}
     for inst in generated_cases(seed, COMPARE_STREAM, [agents], cases, side, density):
-        env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode)
+        env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode, heading=net.cfg.heading)
         steps, stats = play_episode(forward, env, 0.0, np.random.default_rng(0))
         if stats["success"]:
             continue
@@ -119,7 +119,7 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
                                 objective=expert_objective).actions(before)
         except ExpertFailed:
             label = None
-        free = 4 - obstacle_moves(obs["fov"]).sum(axis=1)  # free neighbour cells of each agent
+        free = 4 - obstacle_moves(obs["fov"][:, :6]).sum(axis=1)  # free neighbour cells of each agent (paper channels)
         wanted = {tuple(before[i] + DELTAS[action[i]]) for i in np.flatnonzero(refused)}  # cells pushed into
         for j in np.flatnonzero(action == STAY):
             if tuple(before[j]) not in wanted:
