@@ -10,9 +10,9 @@ last_action (5,) float32 one-hot; position (2,) float32 raw (row, col).
 
 Beyond the paper, optional (`headings`, MapfEnv(heading=True) appends it to fov as channel 6): the cell in
 front of each other agent, that is its cell plus its last requested move (nothing for a stay, nor off the
-map), 1 where at least one other agent faces that cell. A differential-drive robot turns towards the cell it asks for, so a
-motion-capture ground station sees this without any robot telling another; a parked agent that a neighbour
-keeps pushing into sees its own cell marked.
+map), 1 where at least one other agent faces that cell. A differential-drive robot turns towards the cell it
+asks for, so a motion-capture ground station sees this without any robot telling another; a parked agent that
+a neighbour keeps pushing into sees its own cell marked.
 
 Everything that depends only on the map and the goals is precomputed once, padded by l // 2, so a
 step only gathers windows: row r, col c of the map is row r + l//2, col c + l//2 of the padded
@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from mapf_world.grid import DELTAS, N_ACTIONS, check_actions, check_cells, check_grid
+from mapf_world.grid import DELTAS, N_ACTIONS, STAY, check_actions, check_cells, check_grid
 from mapf_world.heuristics import distance_maps
 
 N_CHANNELS = 6
@@ -126,7 +126,7 @@ class ObservationBuilder:
         r = self._radius
         counts = np.zeros_like(self._obstacles)  # padded map
         target = pos + DELTAS[acts]
-        movers = np.flatnonzero(acts != 0)
+        movers = np.flatnonzero(acts != STAY)
         h, w = self.grid.shape
         on_map = movers[(target[movers] >= 0).all(1) & (target[movers, 0] < h) & (target[movers, 1] < w)]
         np.add.at(counts, (r + target[on_map, 0], r + target[on_map, 1]), 1.0)  # a cell off the map is not marked
