@@ -788,13 +788,10 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=args.max_episode_steps, last_action=args.last_action,
                           heading=args.heading)
             drive = ep_rng.random() < args.expert_drive_fraction
-            oracle = None
-            if drive or ep_rng.random() < args.relabel_fraction:
-                oracle = make_oracle(args.expert, env.grid, env.goals, env.dist, args.expert_epsilon,
-                                     min(args.expert_time_limit, args.relabel_time_budget), order=args.expert_order,
-                                     objective=args.expert_objective)
+            relabel = drive or ep_rng.random() < args.relabel_fraction
             greedy = not drive and ep_rng.random() < args.greedy_fraction
-            if greedy and args.stuck_rescue and oracle is None:  # the expert's way out needs the expert
+            oracle = None
+            if relabel or (greedy and args.stuck_rescue):  # the expert's way out needs the expert too
                 oracle = make_oracle(args.expert, env.grid, env.goals, env.dist, args.expert_epsilon,
                                      min(args.expert_time_limit, args.relabel_time_budget), order=args.expert_order,
                                      objective=args.expert_objective)

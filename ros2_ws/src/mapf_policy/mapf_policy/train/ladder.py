@@ -31,6 +31,7 @@ from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
 from mapf_policy.train.dqn_hscl import RecurrentActor, acting, greedy_outcomes, play_episode
 from mapf_world.env import MapfEnv
 from mapf_world.grid import DELTAS, STAY
+from mapf_world.observation import N_CHANNELS
 from mapf_world.planners.odrmstar import OBJECTIVES
 
 # rung -> (what, [(agents, map side, success bar)])
@@ -119,7 +120,7 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
                                 objective=expert_objective).actions(before)
         except ExpertFailed:
             label = None
-        free = 4 - obstacle_moves(obs["fov"][:, :6]).sum(axis=1)  # free neighbour cells of each agent (paper channels)
+        free = 4 - obstacle_moves(obs["fov"][:, :N_CHANNELS]).sum(axis=1)  # free neighbour cells (paper channels)
         wanted = {tuple(before[i] + DELTAS[action[i]]) for i in np.flatnonzero(refused)}  # cells pushed into
         for j in np.flatnonzero(action == STAY):
             if tuple(before[j]) not in wanted:
