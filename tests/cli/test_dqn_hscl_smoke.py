@@ -7,6 +7,7 @@ import shutil
 import subprocess
 
 import pytest
+import torch
 
 from mapf_policy.model_io import load_model
 
@@ -37,6 +38,7 @@ def test_dqn_hscl_logs_what_it_learns_and_resumes(repo_root, tmp_path):
         assert 0.0 <= float(r["dqn_share"]) <= 1.0
         assert float(r["hscl_weight"]) > 0 and float(r["learner_steps_per_s"]) > 0
         assert -1.0 <= float(r["q_return_corr"]) <= 1.0 and float(r["td_abs"]) >= 0
+        assert 0 <= int(r["blocker_move_labels"]) <= int(r["blocker_rows"])
     evals = _rows(run / "eval.csv")
     assert {int(e["step"]) for e in evals} == {6, 12} and evals[0]["stage"] == "1x6"
     net, cfg, meta = load_model(run / "last.pt")
@@ -82,6 +84,7 @@ def test_ladder_reports_a_rung_and_fails_an_untrained_model(repo_root, tmp_path)
         assert stuck["fixed_point"] <= stuck["failed_cases"] and stuck["refused_with_room"] <= stuck["refused"]
         assert stuck["blocker_on_goal"] <= stuck["blockers"] and stuck["blocker_label_moves"] <= stuck["blockers"]
         assert sum(stuck["blocker_label_rank_counts"]) == stuck["blocker_label_moves"] and "pushed into" in out.stdout
+        assert 0 <= stuck["blocker_moves_outweigh_stay"] <= stuck["blockers"] and "outweigh" in out.stdout
     missing = subprocess.run([str(repo_root / "scripts" / "ladder"), str(tmp_path / "nope.pt")], capture_output=True,
                              text=True, timeout=60)
     assert missing.returncode == 2 and "does not exist" in missing.stderr
@@ -132,3 +135,26 @@ def test_a_heading_run_stores_seven_channels_and_the_ladder_plays_it_with_them(r
                          capture_output=True, text=True, timeout=120)
     rows = json.loads((tmp_path / "h.json").read_text())
     assert out.returncode == (0 if rows[0]["passed"] else 1) and rows[0]["cases"] == 3, out.stderr[-2000:]
+
+
+@pytest.mark.slow
+def test_a_run_can_start_from_another_runs_weights_of_the_same_network(repo_root, tmp_path):
+    first = _run(repo_root, tmp_path, "--run-name", "a", "--total-steps", "4")
+    assert first.returncode == 0, first.stderr[-3000:]
+    start = tmp_path / "runs" / "a" / "last.pt"
+    # Another seed (other random weights) and a learning rate of 1e-12, which moves no weight measurably: the new
+    # run's end weights are the first run's end weights only if it started from them.
+    second = _run(repo_root, tmp_path, "--run-name", "b", "--seed", "1", "--total-steps", "4", "--lr", "1e-12",
+                  "--init-model", str(start))
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert "started from the weights of" in second.stdout
+    a, _, _ = load_model(start)
+    b, _, meta = load_model(tmp_path / "runs" / "b" / "last.pt")
+    assert meta["step"] == 4
+    for (name, pa), pb in zip(a.state_dict().items(), b.state_dict().values()):
+        assert torch.allclose(pa, pb, atol=1e-6), name
+
+    other = _run(repo_root, tmp_path, "--run-name", "d", "--heading", "--init-model", str(start))
+    assert other.returncode == 2 and "--init-model" in other.stderr and "heading" in other.stderr
+    missing = _run(repo_root, tmp_path, "--run-name", "e", "--init-model", str(tmp_path / "nope.pt"))
+    assert missing.returncode == 2 and "init_model" in missing.stderr and "not a file" in missing.stderr

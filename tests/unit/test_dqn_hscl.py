@@ -504,3 +504,15 @@ def test_ce_imitation_is_the_cross_entropy_of_the_expert_action_under_the_advant
     assert float(l_ce) == pytest.approx(float(-torch.log_softmax(a / 0.5, dim=0)[4]), rel=1e-6)
     with pytest.raises(ValueError, match="imitation"):
         Args(imitation="bc").validate()
+
+
+def test_pushed_blockers_are_agents_that_stay_where_a_refused_move_tried_to_go():
+    from mapf_policy.train.dqn_hscl import pushed_blockers
+    # Step 0: agent 0 at (0, 0) pushes right into agent 1 at (0, 1), refused; agent 1 stays; agent 2 stays apart.
+    # Step 1: agent 0 waits; agent 1 moves down (nobody pushes into anyone).
+    positions = np.array([[[0, 0], [0, 1], [3, 3]], [[0, 0], [0, 1], [3, 3]], [[0, 0], [1, 1], [3, 3]]])
+    actions = np.array([[4, 0, 0], [0, 2, 0]])
+    failed = np.array([[True, False, False], [False, False, False]])
+    assert pushed_blockers(positions, actions, failed).tolist() == [[False, True, False], [False, False, False]]
+    # An agent whose own move was refused into the pusher's cell is not a blocker (it did not choose to stay).
+    assert not pushed_blockers(positions[:2], np.array([[4, 3, 0]]), np.array([[True, True, False]])).any()

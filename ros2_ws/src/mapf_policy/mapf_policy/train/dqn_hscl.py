@@ -52,7 +52,7 @@ from mapf_policy.train.demos import ACTOR_STREAM, VALID_STREAM, generated_cases,
 from mapf_policy.train.expert import ExpertFailed, make_oracle
 from mapf_policy.train.log import CsvLog, read_csv, truncate_log
 from mapf_world.env import LAST_ACTION_MODES, MapfEnv
-from mapf_world.grid import DELTAS
+from mapf_world.grid import DELTAS, STAY
 from mapf_world.heuristics import distance_maps
 from mapf_world.instances import generate_instance
 from mapf_world.planners.odrmstar import OBJECTIVES as EXPERT_OBJECTIVES
@@ -64,6 +64,9 @@ class Args:
 
     run_name: str = "dqn_hscl"
     """Run directory runs/<run_name>; the same command resumes it."""
+    init_model: str = ""
+    """Start a new run from these weights (a model file of this run's network, e.g. an imitation run's last.pt; the
+    target network is a copy) instead of random weights; a resumed run ignores it. Empty: random weights."""
     seed: int = 0
     """Seeds torch, numpy and the generated worlds (own streams for training and validation)."""
     variant: str = "hscl"
@@ -288,6 +291,7 @@ class Args:
         need(self.expert_objective in EXPERT_OBJECTIVES,
              f"expert_objective must be one of {sorted(EXPERT_OBJECTIVES)}, got {self.expert_objective!r}")
         need(self.expert_epsilon >= 1, f"expert_epsilon must be >= 1, got {self.expert_epsilon}")
+        need(not self.init_model or Path(self.init_model).is_file(), f"init_model {self.init_model!r} is not a file")
         need(len(self.stages) >= 1, "stages must name at least one stage")
         for s in self.stages:
             parse_stage(s)
@@ -469,6 +473,14 @@ def infeasible_labels(positions: np.ndarray, expert: np.ndarray) -> np.ndarray:
     the others to move as planned; where one of them stood still or took that cell, the labelled move would
     have been refused. Such a label teaches the push that deadlocks a greedy team (issue 20, finding 3)."""
     return _labelled_moves_into(positions, expert, positions[1:]).any(axis=2)
+
+
+def pushed_blockers(positions: np.ndarray, actions: np.ndarray, failed: np.ndarray) -> np.ndarray:
+    """(T, N) bool: agent j chose to stay on a cell another agent's refused move tried to enter (the stuck report's
+    blockers, at every step). positions (T + 1, N, 2) as played, actions (T, N) as chosen, failed (T, N) refused."""
+    refused_moves = np.where(failed, actions, -1)
+    into = _labelled_moves_into(positions, refused_moves, positions[:-1])  # (T, i, j): i's refused move hits j's cell
+    return into.any(axis=1) & (actions == STAY)
 
 
 def parked_push_labels(positions: np.ndarray, goals: np.ndarray, expert: np.ndarray) -> np.ndarray:
@@ -737,7 +749,7 @@ def greedy_success(forward, cases: list, last_action: str, max_steps: int) -> tu
 TRAIN_COLUMNS = ("step", "stage", "episodes", "l_dqn", "l_hscl", "hscl_weight", "dqn_share", "td_abs", "td_refused",
                  "refused_minus_stay", "refused_rows", "adv_norm", "q_mean", "mc_return_mean", "q_return_corr", "agreement",
                  "train_success", "train_steps", "mean_team", "samples_per_s", "learner_steps_per_s", "env_rows_per_s",
-                 "epsilon", "blocked_share", "rescued_episodes", "elapsed_s")
+                 "epsilon", "blocked_share", "rescued_episodes", "blocker_rows", "blocker_move_labels", "elapsed_s")
 EVAL_COLUMNS = ("step", "stage", "agents", "size", "success_rate", "average_step")
 
 
@@ -756,6 +768,12 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     state = {"step": 0, "stage": 0, "episodes": 0, "elapsed": 0.0, "hscl_weight": args.hscl_weight}
     resumed = _resume(run_dir, Path(args.publish_dir) if args.publish_dir else None, net, target, opt, state, ncfg)
+    if not resumed and args.init_model:
+        loaded, cfg, _ = load_model(args.init_model)
+        if cfg != ncfg:
+            raise ValueError(f"--init-model {args.init_model}: its network {cfg} differs from this run's {ncfg}")
+        net.load_state_dict(loaded.state_dict())
+        print(f"started from the weights of {args.init_model}")
     if not resumed:
         target.load_state_dict(net.state_dict())
     truncate_log(run_dir / "train.csv", state["step"])
@@ -806,6 +824,12 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             rows = episode_rows(steps, stats["success"], args.gamma, args.n_step, args.feasible_labels,
                                 STILL_KEYS[args.still_count], goals=None if args.parked_labels else env.goals,
                                 episode=state["episodes"], fixed_point=stats["fixed_point"])
+            # Look inside: the blockers' rows as stored, and how many carry a move label (the expert's way out).
+            blockers = pushed_blockers(np.stack([o["position"] for o in steps["obs"]]).astype(np.int64),
+                                       np.stack(steps["action"]), np.stack(steps["failed"])).ravel()
+            if blockers.size == len(rows["expert"]):
+                stats["blocker_rows"] = int(blockers.sum())
+                stats["blocker_move_labels"] = int((rows["expert"][blockers] > 0).sum())
             replay.add(rows)
             state["episodes"] += 1
             window["rows"] += len(rows["action"])
@@ -934,6 +958,8 @@ def _log_row(args: Args, state: dict, window: dict, session_t0: float, epsilon: 
             "env_rows_per_s": window["rows"] / dt, "epsilon": epsilon,
             "blocked_share": sum(e["blocked"] for e in eps) / max(1, sum(e["steps"] * e["n_agents"] for e in eps)),
             "rescued_episodes": sum(e["rescued"] for e in eps),
+            "blocker_rows": sum(e.get("blocker_rows", 0) for e in eps),
+            "blocker_move_labels": sum(e.get("blocker_move_labels", 0) for e in eps),
             "elapsed_s": round(state["elapsed"] + time.monotonic() - session_t0, 1)}
 
 
@@ -1121,6 +1147,12 @@ def main(argv=None) -> int:
         if differ:
             print(f"error: run {run_dir} exists with other values of {differ}; resume without them or pick another "
                   f"--run-name", file=sys.stderr)
+            return 2
+    if args.init_model and not (run_dir / "last.pt").is_file():
+        _, init_cfg, _ = load_model(args.init_model)
+        if init_cfg != args.network_config():
+            print(f"error: --init-model {args.init_model} holds the network {init_cfg}, this run builds "
+                  f"{args.network_config()}", file=sys.stderr)
             return 2
     print(f"run {run_dir}\n" + json.dumps(_plain(args), indent=1))
     state = train(args, run_dir, progress=not ns.no_progress)

@@ -80,6 +80,14 @@ def run_rung(path, rung: int, cases: int, seed: int = 0, density: float = 0.3, m
     return rows
 
 
+def moves_outweigh_stay(q: np.ndarray, temperature: float) -> bool:
+    """Whether staying is the argmax of one agent's Q-values `q` although the four moves together carry more
+    probability under softmax(q / temperature): a plurality stay over a majority that is split over directions."""
+    prob = np.exp((q - q.max()) / temperature)
+    prob /= prob.sum()
+    return bool(q.argmax() == STAY and prob.sum() - prob[STAY] > prob[STAY])
+
+
 def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, density: float = 0.3,
                  max_steps: int = 256, expert_objective: str = "free_goal_wait", expert_epsilon: float = 10.0) -> dict:
     """Where greedy failures stand at their last step: agents whose move was refused, whether that move is
@@ -92,14 +100,18 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
     The other side of a push: `blockers`, agents that chose to stay at the last step on a cell a refused agent
     tried to enter; `blocker_on_goal` of them stand on their goal, `blocker_label_moves` of them ODrM* would
     move (the joint plan has the blocker give way), and `blocker_label_rank_counts[r]` counts those whose
-    labelled move has rank r in their Q-values (0: it is the argmax)."""
+    labelled move has rank r in their Q-values (0: it is the argmax). `blocker_moves_outweigh_stay` counts the
+    blockers whose four moves together carry more probability than staying under softmax(Q / T), T the training
+    temperature (the policy a cross-entropy imitation learner fits), while staying is still the argmax: moving is
+    what the labels say more often, but split over directions, so no single move outranks the stay."""
     from mapf_policy.train.expert import ExpertFailed, make_oracle
 
     net, _, meta = load_model(path)
     forward, mode = acting(net), model_last_action(meta)
+    temperature = float(meta.get("train_args", {}).get("temperature", 0.1))  # of the imitation term
     out = {"failed_cases": 0, "fixed_point": 0, "refused": 0, "refused_with_room": 0, "refused_is_argmax": 0,
            "label_is_refused_move": 0, "labelled": 0, "blockers": 0, "blocker_on_goal": 0, "blocker_label_moves": 0,
-           "blocker_label_rank": [], "lead": []}
+           "blocker_label_rank": [], "blocker_moves_outweigh_stay": 0, "lead": []}
     for inst in generated_cases(seed, COMPARE_STREAM, [agents], cases, side, density):
         env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode, heading=net.cfg.heading)
         steps, stats = play_episode(forward, env, 0.0, np.random.default_rng(0))
@@ -127,6 +139,7 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
                 continue
             out["blockers"] += 1
             out["blocker_on_goal"] += int((before[j] == env.goals[j]).all())
+            out["blocker_moves_outweigh_stay"] += int(moves_outweigh_stay(q[j], temperature))
             if label is not None and label[j] != 0:
                 out["blocker_label_moves"] += 1
                 out["blocker_label_rank"].append(int((q[j] > q[j][label[j]]).sum()))
@@ -201,7 +214,9 @@ def main(argv=None) -> int:
                       f"(median lead {rep['median_lead']:.3f}); ODrM* labels it in {rep['label_is_refused_move']} of "
                       f"{rep['labelled']} labelled. {rep['blockers']} agents stayed on a cell pushed into "
                       f"({rep['blocker_on_goal']} on their goal); ODrM* moves {rep['blocker_label_moves']} of them, its "
-                      f"move ranked 1st..5th in their Q-values {rep['blocker_label_rank_counts']} times")
+                      f"move ranked 1st..5th in their Q-values {rep['blocker_label_rank_counts']} times; "
+                      f"{rep['blocker_moves_outweigh_stay']} of them stay although their four moves together outweigh "
+                      f"the stay under softmax(Q / T)")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0 if all(r["passed"] for r in rows) else 1

@@ -1,0 +1,23 @@
+"""The ladder's stuck report: a plurality stay over moves that together outweigh it."""
+import numpy as np
+
+from mapf_policy.train.ladder import moves_outweigh_stay
+from mapf_world.grid import STAY
+
+
+def _q(stay: float, moves: list[float]) -> np.ndarray:
+    q = np.array(moves[:STAY] + [stay] + moves[STAY:], dtype=np.float32)
+    assert q[STAY] == stay
+    return q
+
+
+def test_a_stay_ahead_of_four_close_moves_is_a_plurality_over_a_split_majority():
+    # At T = 0.1: stay e^0 = 1 against 4 e^-0.5 = 2.43: the moves together outweigh it.
+    assert moves_outweigh_stay(_q(0.0, [-0.05, -0.05, -0.05, -0.05]), 0.1)
+
+
+def test_a_stay_far_ahead_or_not_the_argmax_is_not():
+    assert not moves_outweigh_stay(_q(0.0, [-1.0, -1.0, -1.0, -1.0]), 0.1)  # 4 e^-10: the stay dominates
+    assert not moves_outweigh_stay(_q(0.0, [0.1, -1.0, -1.0, -1.0]), 0.1)  # a move is the argmax
+    # The temperature decides it: the same values, colder, leave the stay ahead of the moves together.
+    assert not moves_outweigh_stay(_q(0.0, [-0.05, -0.05, -0.05, -0.05]), 0.01)
