@@ -158,3 +158,14 @@ def test_a_run_can_start_from_another_runs_weights_of_the_same_network(repo_root
     assert other.returncode == 2 and "--init-model" in other.stderr and "heading" in other.stderr
     missing = _run(repo_root, tmp_path, "--run-name", "e", "--init-model", str(tmp_path / "nope.pt"))
     assert missing.returncode == 2 and "init_model" in missing.stderr and "not a file" in missing.stderr
+
+
+@pytest.mark.slow
+def test_an_imitation_run_weighs_the_pushed_blockers_rows(repo_root, tmp_path):
+    run = _run(repo_root, tmp_path, "--run-name", "bw", "--imitation", "ce", "--dqn-weight", "0", "--dqn-share", "0",
+               "--hscl-weight", "1", "--blocker-weight", "4", "--greedy-fraction", "0.5")
+    assert run.returncode == 0, run.stderr[-3000:]
+    rows = _rows(tmp_path / "runs" / "bw" / "train.csv")
+    assert [int(r["step"]) for r in rows] == [4, 8, 12] and all(float(r["l_hscl"]) > 0 for r in rows)
+    bad = _run(repo_root, tmp_path, "--run-name", "bw2", "--blocker-weight", "4")  # the HSCL term: refused
+    assert bad.returncode == 2 and "blocker_weight" in bad.stderr

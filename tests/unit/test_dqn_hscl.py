@@ -516,3 +516,43 @@ def test_pushed_blockers_are_agents_that_stay_where_a_refused_move_tried_to_go()
     assert pushed_blockers(positions, actions, failed).tolist() == [[False, True, False], [False, False, False]]
     # An agent whose own move was refused into the pusher's cell is not a blocker (it did not choose to stay).
     assert not pushed_blockers(positions[:2], np.array([[4, 3, 0]]), np.array([[True, True, False]])).any()
+
+
+def test_blocker_weight_weighs_the_pushed_blockers_labelled_rows_in_the_ce_term():
+    q = torch.tensor([[0.3, 0.1, 0.0, -0.2, 0.5], [1.0, 1.2, 0.9, 0.8, 1.1], [0.0, 0.4, 0.0, 0.0, 0.0]])
+    batch = {"action": torch.tensor([0, 0, 0]), "ret": torch.zeros(3), "boot_gamma": torch.zeros(3),
+             "expert": torch.tensor([4, 2, -1]), "blocker": torch.tensor([False, True, True])}
+    per_row = [float(-torch.log_softmax((q[i] - q[i].mean()) / 0.1, dim=0)[k]) for i, k in ((0, 4), (1, 2))]
+    _, plain, _ = losses(q, torch.zeros(3, 5), batch, Args(imitation="ce"))
+    _, weighted, _ = losses(q, torch.zeros(3, 5), batch, Args(imitation="ce", blocker_weight=4.0))
+    assert float(plain) == pytest.approx((per_row[0] + per_row[1]) / 2, rel=1e-5)
+    assert float(weighted) == pytest.approx((per_row[0] + 4 * per_row[1]) / 5, rel=1e-5)  # the unlabelled row: none
+    with pytest.raises(ValueError, match="blocker_weight"):
+        Args(blocker_weight=4.0).validate()  # the HSCL term
+    with pytest.raises(ValueError, match="blocker_weight"):
+        Args(imitation="ce", blocker_weight=0.0).validate()
+
+
+def test_episode_rows_mark_the_pushed_blockers():
+    from mapf_policy.train.dqn_hscl import episode_rows
+    env = MapfEnv(np.zeros((3, 3), dtype=bool), [(0, 0), (0, 1)], [(0, 2), (0, 1)], max_steps=4)
+    obs0, _ = env.reset()
+    steps = {"obs": [obs0], "action": [], "reward": [], "expert": [], "failed": []}
+    obs, reward, _, _, info = env.step(np.array([4, 0]))  # agent 0 pushes right into agent 1, parked on its goal
+    for k, v in (("obs", obs), ("action", np.array([4, 0])), ("reward", reward), ("expert", np.array([1, 2])),
+                 ("failed", info["failed"])):
+        steps[k].append(v)
+    rows = episode_rows(steps, False, 0.99, 2)
+    assert info["failed"].tolist() == [True, False] and rows["blocker"].tolist() == [False, True]
+
+
+def test_replay_batches_carry_the_blocker_flag():
+    env = MapfEnv(np.zeros((3, 3), dtype=bool), [(0, 0), (0, 1)], [(0, 2), (0, 1)], max_steps=4)
+    obs0, _ = env.reset()
+    obs, reward, _, _, info = env.step(np.array([4, 0]))
+    steps = {"obs": [obs0, obs], "action": [np.array([4, 0])], "reward": [reward], "expert": [np.array([1, 2])],
+             "failed": [info["failed"]]}
+    replay = Replay(16, 0.0, 0.4)
+    replay.add(episode_rows(steps, False, 0.99, 2))
+    batch = replay.sample(8, np.random.default_rng(0))
+    assert batch["blocker"].dtype == torch.bool and batch["blocker"].tolist() == (batch["index"] % 2 == 1).tolist()

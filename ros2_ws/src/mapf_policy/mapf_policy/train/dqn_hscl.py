@@ -205,6 +205,11 @@ class Args:
     k >= 1), once the team has stood still k steps the expert drives it from that fixed point on, with no random
     steps, so the replay holds the greedy team's own deadlocks together with the expert's joint way out of them
     (its labels for HSCL, its outcome for the DQN term). False: exploration starts there (stuck_steps)."""
+    blocker_weight: float = 1.0
+    """Beyond the paper: with `imitation` 'ce', a labelled row of a pushed blocker (an agent that chose to stay on a cell
+    another agent's refused move tried to enter, pushed_blockers) weighs this many times an ordinary labelled row in
+    the imitation term, whatever its label. Such rows are about 1-3 % of the replay, and a greedy team's fixed points
+    turn on them. 1: every labelled row alike."""
     expert: str = "odrmstar"
     """'odrmstar' (the paper's) or 'shortest_path' (a stand-in for tests)."""
     expert_order: str = "index"
@@ -280,6 +285,9 @@ class Args:
              "dqn_weight and hscl_weight must be >= 0, not both 0")
         need(self.imitation in ("hscl", "margin", "ce"), f"imitation must be hscl, margin or ce, got {self.imitation!r}")
         need(self.margin > 0, f"margin must be > 0, got {self.margin}")
+        need(self.blocker_weight > 0, f"blocker_weight must be > 0, got {self.blocker_weight}")
+        need(self.blocker_weight == 1.0 or (self.imitation == "ce" and not self.recurrent),
+             "blocker_weight != 1 needs imitation 'ce' and a feed-forward network")
         need(0.0 < self.tau_h < 0.2, f"tau_h must lie in (0, 0.2), got {self.tau_h}")
         need(self.lr_end >= 0, f"lr_end must be >= 0, got {self.lr_end}")
         need(0 <= self.advantage_learning < 1, f"advantage_learning must lie in [0, 1), got {self.advantage_learning}")
@@ -325,6 +333,7 @@ ROW_SPECS = {  # one agent's n-step transition; fov values are 0/1 (7 channels w
     "action": (np.int8, ()), "ret": (np.float32, ()), "boot_gamma": (np.float32, ()),
     "next_fov": (np.uint8, (6, 9, 9)), "next_last_action": (np.int8, ()), "next_position": (np.int16, (2,)),
     "expert": (np.int8, ()), "mc_return": (np.float32, ()), "refused": (np.bool_, ()), "solved": (np.bool_, ()),
+    "blocker": (np.bool_, ()),  # pushed_blockers: stayed on a cell another agent's refused move tried to enter
     "still": (np.int16, ()), "next_still": (np.int16, ()),  # the count Args.still_count names, for still_bins > 0
     # Where the row sits, for sequences (recurrent): row (t, i) of episode e is followed by row (t + 1, i) of e,
     # n_agents rows later; m is its bootstrap's distance (next_* is the observation at t + m).
@@ -542,6 +551,7 @@ def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasi
         "next_fov": flat(fov[nxt]), "next_last_action": flat(last[nxt]), "next_position": flat(pos[nxt]),
         "expert": flat(expert), "mc_return": flat(mc.astype(np.float32)),
         "refused": flat(np.stack(steps["failed"]).astype(bool)),
+        "blocker": flat(pushed_blockers(pos.astype(np.int64), np.stack(steps["action"]), np.stack(steps["failed"]))),
         "solved": np.full(t_len * n_agents, bool(terminated)),  # mc_return is a whole episode's return
         "still": flat(still[:-1]), "next_still": flat(still[nxt]),
         "episode": np.full(t_len * n_agents, episode, dtype=np.int64),
@@ -607,8 +617,8 @@ class Replay:
         eye = torch.eye(5)
         b = {k: torch.from_numpy(v[idx]) for k, v in self.data.items()}
         t = {"action": b["action"].long(), "expert": b["expert"].long(), "refused": b["refused"], "solved": b["solved"],
-             "still": b["still"].long(), "next_still": b["next_still"].long(), "index": idx, "weight": weight,
-             "m": b["m"].long(), "episode": b["episode"]}
+             "blocker": b["blocker"], "still": b["still"].long(), "next_still": b["next_still"].long(), "index": idx,
+             "weight": weight, "m": b["m"].long(), "episode": b["episode"]}
         if "h_in" in b:
             t["h_in"] = b["h_in"].float()
         for k in ("ret", "boot_gamma", "mc_return"):
@@ -708,7 +718,9 @@ def losses(q: torch.Tensor, next_q_target: torch.Tensor, batch: dict, args: Args
         if args.imitation == "margin":
             l_hscl = margin_loss(scores[labelled], batch["expert"][labelled], args.margin)
         elif args.imitation == "ce":
-            l_hscl = F.cross_entropy(scores[labelled] / args.temperature, batch["expert"][labelled])
+            ce = F.cross_entropy(scores[labelled] / args.temperature, batch["expert"][labelled], reduction="none")
+            w = torch.where(batch["blocker"][labelled], args.blocker_weight, 1.0) if args.blocker_weight != 1.0 else None
+            l_hscl = ce.mean() if w is None else (w * ce).sum() / w.sum()
         else:
             l_hscl = hscl_loss(scores[labelled], batch["expert"][labelled], args.tau_h, args.temperature)
     else:
@@ -825,11 +837,8 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                                 STILL_KEYS[args.still_count], goals=None if args.parked_labels else env.goals,
                                 episode=state["episodes"], fixed_point=stats["fixed_point"])
             # Look inside: the blockers' rows as stored, and how many carry a move label (the expert's way out).
-            blockers = pushed_blockers(np.stack([o["position"] for o in steps["obs"]]).astype(np.int64),
-                                       np.stack(steps["action"]), np.stack(steps["failed"])).ravel()
-            if blockers.size == len(rows["expert"]):
-                stats["blocker_rows"] = int(blockers.sum())
-                stats["blocker_move_labels"] = int((rows["expert"][blockers] > 0).sum())
+            stats["blocker_rows"] = int(rows["blocker"].sum())
+            stats["blocker_move_labels"] = int((rows["expert"][rows["blocker"]] > 0).sum())
             replay.add(rows)
             state["episodes"] += 1
             window["rows"] += len(rows["action"])
