@@ -28,9 +28,9 @@ from mapf_policy.action_selection import obstacle_moves
 from mapf_policy.model_io import load_model
 from mapf_policy.network import network_inputs
 from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
-from mapf_policy.train.dqn_hscl import RecurrentActor, acting, greedy_outcomes, play_episode
+from mapf_policy.train.dqn_hscl import RecurrentActor, acting, greedy_outcomes, play_episode, pushed_blockers
 from mapf_world.env import MapfEnv
-from mapf_world.grid import DELTAS, STAY
+from mapf_world.grid import STAY
 from mapf_world.observation import N_CHANNELS
 from mapf_world.planners.odrmstar import OBJECTIVES
 
@@ -84,8 +84,7 @@ def moves_outweigh_stay(q: np.ndarray, temperature: float) -> bool:
     """Whether staying is the argmax of one agent's Q-values `q` although the four moves together carry more
     probability under softmax(q / temperature): a plurality stay over a majority that is split over directions."""
     prob = np.exp((q - q.max()) / temperature)
-    prob /= prob.sum()
-    return bool(q.argmax() == STAY and prob.sum() - prob[STAY] > prob[STAY])
+    return bool(q.argmax() == STAY and prob[STAY] / prob.sum() < 0.5)
 
 
 def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, density: float = 0.3,
@@ -133,10 +132,8 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
         except ExpertFailed:
             label = None
         free = 4 - obstacle_moves(obs["fov"][:, :N_CHANNELS]).sum(axis=1)  # free neighbour cells (paper channels)
-        wanted = {tuple(before[i] + DELTAS[action[i]]) for i in np.flatnonzero(refused)}  # cells pushed into
-        for j in np.flatnonzero(action == STAY):
-            if tuple(before[j]) not in wanted:
-                continue
+        last_step = np.stack([before, steps["obs"][-1]["position"]]).astype(np.int64)
+        for j in np.flatnonzero(pushed_blockers(last_step, action[None], refused[None])[0]):
             out["blockers"] += 1
             out["blocker_on_goal"] += int((before[j] == env.goals[j]).all())
             out["blocker_moves_outweigh_stay"] += int(moves_outweigh_stay(q[j], temperature))
