@@ -26,6 +26,12 @@ def _rows(path):
         return list(csv.DictReader(f))
 
 
+def test_dqn_hscl_help_lists_every_option(repo_root):
+    out = subprocess.run([str(repo_root / "scripts" / "dqn_hscl"), "--help"], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "--heading-refused" in out.stdout and "--total-steps" in out.stdout
+
+
 @pytest.mark.slow
 def test_dqn_hscl_logs_what_it_learns_and_resumes(repo_root, tmp_path):
     pub = tmp_path / "published"
@@ -39,6 +45,7 @@ def test_dqn_hscl_logs_what_it_learns_and_resumes(repo_root, tmp_path):
         assert float(r["hscl_weight"]) > 0 and float(r["learner_steps_per_s"]) > 0
         assert -1.0 <= float(r["q_return_corr"]) <= 1.0 and float(r["td_abs"]) >= 0
         assert 0 <= int(r["blocker_move_labels"]) <= int(r["blocker_rows"])
+        assert 0 <= int(r["blocker_states"]) <= int(r["blocker_rows"])
     evals = _rows(run / "eval.csv")
     assert {int(e["step"]) for e in evals} == {6, 12} and evals[0]["stage"] == "1x6"
     net, cfg, meta = load_model(run / "last.pt")

@@ -518,6 +518,17 @@ def test_pushed_blockers_are_agents_that_stay_where_a_refused_move_tried_to_go()
     assert not pushed_blockers(positions[:2], np.array([[4, 3, 0]]), np.array([[True, True, False]])).any()
 
 
+def test_distinct_observations_counts_repeated_states_once():
+    from mapf_policy.train.dqn_hscl import distinct_observations
+    fov = np.zeros((4, 2, 3, 3), np.uint8)
+    fov[3, 0, 1, 1] = 1  # the fourth row sees something else
+    rows = {"fov": fov, "last_action": np.array([0, 0, 1, 0], np.int8),
+            "position": np.array([[1, 1], [1, 1], [1, 1], [1, 1]], np.int16)}
+    assert distinct_observations(rows, np.array([True, True, False, False])) == 1  # two copies of one state
+    assert distinct_observations(rows, np.ones(4, bool)) == 3  # another last action, another fov
+    assert distinct_observations(rows, np.zeros(4, bool)) == 0
+
+
 def test_blocker_weight_weighs_the_pushed_blockers_labelled_rows_in_the_ce_term():
     q = torch.tensor([[0.3, 0.1, 0.0, -0.2, 0.5], [1.0, 1.2, 0.9, 0.8, 1.1], [0.0, 0.4, 0.0, 0.0, 0.0]])
     batch = {"action": torch.tensor([0, 0, 0]), "ret": torch.zeros(3), "boot_gamma": torch.zeros(3),

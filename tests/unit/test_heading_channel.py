@@ -29,6 +29,30 @@ def test_a_parked_agent_sees_the_neighbour_that_pushes_into_it():
     assert obs["last_action"][0].argmax() == STAY  # the executed last action alone would not tell it
 
 
+def test_the_refused_heading_marks_a_push_and_not_a_neighbour_that_just_arrived():
+    grid = np.zeros((6, 6), np.uint8)
+    # Agent 0 steps from (2, 0) to (2, 1), beside agent 1 parked on its goal (2, 2): its heading faces (2, 2) too.
+    plain = MapfEnv(grid, np.array([[2, 0], [2, 2]]), np.array([[2, 4], [2, 2]]), heading=True, last_action="executed")
+    refused = MapfEnv(grid, np.array([[2, 0], [2, 2]]), np.array([[2, 4], [2, 2]]), heading=True, heading_refused=True,
+                      last_action="executed")
+    for env in (plain, refused):
+        env.reset()
+    arrived = [env.step([RIGHT, STAY])[0]["fov"][1, 6] for env in (plain, refused)]
+    assert arrived[0][R, R] == 1 and not arrived[1].any()  # an arrival: only the requested heading marks it
+    pushed = [env.step([RIGHT, STAY])[0]["fov"][1, 6] for env in (plain, refused)]  # now refused: (2, 2) is held
+    assert pushed[0][R, R] == 1 and pushed[1][R, R] == 1 and pushed[1].sum() == 1
+    moved_on = refused.step([UP, STAY])[0]["fov"][1, 6]
+    assert not moved_on.any()  # the push is over
+
+
+def test_the_refused_heading_needs_the_heading_channel():
+    grid = np.zeros((5, 5), np.uint8)
+    with pytest.raises(ValueError, match="heading_refused"):
+        MapfEnv(grid, np.array([[0, 0]]), np.array([[4, 4]]), heading_refused=True)
+    with pytest.raises(ValueError, match="heading_refused"):
+        NetworkConfig(heading_refused=True).validate()
+
+
 def test_headings_mark_each_facing_cell_once_and_skip_stays_and_the_own_heading():
     grid = np.zeros((7, 7), np.uint8)
     builder = ObservationBuilder(grid, np.array([[0, 0], [0, 1], [0, 2], [6, 6]]))

@@ -99,6 +99,10 @@ class NetworkConfig:
     passing by (issue 20's greedy fixed points); a neighbour that keeps facing its cell tells it, with no
     communication. Adds 64 x 9 weights to the first conv and widens the self-attention to 7 channels.
     False: the paper's six channels (every model before it)."""
+    heading_refused: bool = False
+    """Beyond the paper, with `heading`: the channel marks only the cells that other agents' refused moves tried to
+    enter (MapfEnv(heading_refused=True)). The requested heading of a neighbour that has just stepped up beside an
+    agent marks the agent's cell just as a refused push does; this one marks the push alone. False: every move."""
 
     @property
     def fov_channels(self) -> int:
@@ -123,6 +127,8 @@ class NetworkConfig:
             raise ValueError(f"position_scale must be > 0, got {self.position_scale}")
         if self.n_actions != 5:
             raise ValueError(f"n_actions must be 5, got {self.n_actions}")
+        if self.heading_refused and not self.heading:
+            raise ValueError("heading_refused needs heading (it says what the heading channel marks)")
         if self.still_count not in STILL_KEYS:
             raise ValueError(f"still_count must be one of {tuple(STILL_KEYS)}, got {self.still_count!r}")
         if self.still_bins < 0 or self.still_bins == 1 or self.still_features < 1:

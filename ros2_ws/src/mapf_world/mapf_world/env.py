@@ -19,7 +19,8 @@ with the same non-empty set of cells next to it (4-neighbourhood) held by agents
 set changed or is empty). An agent can count all three from its own requests, positions and fields of view.
 
 `heading=True` (beyond the paper; off everywhere by default) appends a seventh fov channel: the cells the
-other agents face, each one's cell plus its last requested move (ObservationBuilder.headings).
+other agents face, each one's cell plus its last requested move (ObservationBuilder.headings); with
+`heading_refused=True` as well, only the moves that were refused (the cells another agent tried and failed to enter).
 """
 from __future__ import annotations
 
@@ -43,7 +44,7 @@ class MapfEnv:
     """One instance (map, starts, goals). Arrays follow docs/ARCHITECTURE.md: cells are (row, col)."""
 
     def __init__(self, grid, starts, goals, fov_size: int = 9, max_steps: int = 256, last_action: str = "requested",
-                 heading: bool = False):
+                 heading: bool = False, heading_refused: bool = False):
         # Cells on the map, free, distinct, goals reachable (cheap component labels; the BFS waits for reset()).
         self._grid, self._starts, self._goals = check_instance(grid, starts, goals)
         if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
@@ -54,6 +55,9 @@ class MapfEnv:
             raise ValueError(f"last_action must be one of {LAST_ACTION_MODES}, got {last_action!r}")
         self.last_action_mode = last_action
         self.heading = bool(heading)
+        self.heading_refused = bool(heading_refused)
+        if self.heading_refused and not self.heading:
+            raise ValueError("heading_refused=True needs heading=True (it says what the heading channel marks)")
         self._dist: np.ndarray | None = None
         self._builder: ObservationBuilder | None = None
         self._positions = self._starts.copy()
@@ -117,7 +121,9 @@ class MapfEnv:
         same cell and of consecutive refused moves."""
         obs = self.observation_builder.build(self._positions, self._last_actions)
         if self.heading:
-            facing = self.observation_builder.headings(self._positions, self._requested)
+            facing = self.observation_builder.headings(
+                self._positions, np.where(self._refused_run > 0, self._requested, STAY) if self.heading_refused
+                else self._requested)
             obs["fov"] = np.concatenate([obs["fov"], facing[:, None]], axis=1)
         return obs | {
             "still": self._still.copy(), "refused_run": self._refused_run.copy(), "contact_run": self._contact_run.copy()}

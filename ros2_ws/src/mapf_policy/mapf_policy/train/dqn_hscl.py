@@ -84,6 +84,9 @@ class Args:
     heading: bool = False
     """Beyond the paper: the fov gets a seventh channel, the cells the other agents face (NetworkConfig.heading,
     MapfEnv(heading=True)); False: the paper's six channels."""
+    heading_refused: bool = False
+    """Beyond the paper, with `heading`: the channel marks only the cells that other agents' refused moves tried to
+    enter (NetworkConfig.heading_refused): a pushed blocker sees the push, not a neighbour that just arrived."""
     recurrent: bool = False
     """Beyond the paper (DHC's design): a GRU memory per agent (NetworkConfig.recurrent), trained on sequences of
     `sequence_length` steps of one agent, each started from the memory its actor had there (R2D2's stored state).
@@ -306,7 +309,8 @@ class Args:
 
     def network_config(self) -> NetworkConfig:
         return NetworkConfig(dueling=self.dueling, still_bins=self.still_bins, still_count=self.still_count,
-                             recurrent=self.recurrent, heading=self.heading, **ABLATIONS.get(self.variant, {}))
+                             recurrent=self.recurrent, heading=self.heading,
+                             heading_refused=self.heading_refused, **ABLATIONS.get(self.variant, {}))
 
 
 def learning_rate(args: Args, step: int) -> float:
@@ -497,6 +501,13 @@ def parked_push_labels(positions: np.ndarray, goals: np.ndarray, expert: np.ndar
     the step. positions (T + 1, N, 2) as played, goals (N, 2), expert (T, N) labels (-1: none)."""
     parked = np.all(positions[:-1] == goals[None], axis=2)  # (T, N)
     return (_labelled_moves_into(positions, expert, positions[:-1]) & parked[:, None, :]).any(axis=2)
+
+
+def distinct_observations(rows: dict, mask: np.ndarray) -> int:
+    """How many distinct observations (fov, last action, position) the rows under `mask` hold. A greedy fixed point
+    repeats one observation per agent until the time limit, so its rows are many copies of a few states."""
+    return len({(rows["fov"][i].tobytes(), int(rows["last_action"][i]), rows["position"][i].tobytes())
+                for i in np.flatnonzero(mask)})
 
 
 def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasible_labels: bool = False,
@@ -745,8 +756,9 @@ def greedy_outcomes(forward, cases, last_action: str, max_steps: int, epsilon: f
     The observation has the heading channel when forward's network reads it (forward.cfg.heading)."""
     outcomes = []
     for k, inst in enumerate(cases):
+        cfg = getattr(forward, "cfg", NetworkConfig())
         env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=last_action,
-                      heading=getattr(forward, "cfg", NetworkConfig()).heading)
+                      heading=cfg.heading, heading_refused=cfg.heading_refused)
         _, stats = play_episode(forward, env, epsilon, np.random.default_rng(k if epsilon > 0 else 0))
         outcomes.append((stats["success"], stats["steps"] if stats["success"] else max_steps))
     return outcomes
@@ -761,7 +773,8 @@ def greedy_success(forward, cases: list, last_action: str, max_steps: int) -> tu
 TRAIN_COLUMNS = ("step", "stage", "episodes", "l_dqn", "l_hscl", "hscl_weight", "dqn_share", "td_abs", "td_refused",
                  "refused_minus_stay", "refused_rows", "adv_norm", "q_mean", "mc_return_mean", "q_return_corr", "agreement",
                  "train_success", "train_steps", "mean_team", "samples_per_s", "learner_steps_per_s", "env_rows_per_s",
-                 "epsilon", "blocked_share", "rescued_episodes", "blocker_rows", "blocker_move_labels", "elapsed_s")
+                 "epsilon", "blocked_share", "rescued_episodes", "blocker_rows", "blocker_move_labels", "blocker_states",
+                 "elapsed_s")
 EVAL_COLUMNS = ("step", "stage", "agents", "size", "success_rate", "average_step")
 
 
@@ -816,7 +829,8 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             ep_rng = instance_rng(args.seed, ACTOR_STREAM, state["episodes"])
             inst = generate_instance(ep_rng, size=size, density=args.density, n_agents=agents)
             env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=args.max_episode_steps, last_action=args.last_action,
-                          heading=args.heading)
+                          heading=args.heading,
+                          heading_refused=args.heading_refused)
             drive = ep_rng.random() < args.expert_drive_fraction
             relabel = drive or ep_rng.random() < args.relabel_fraction
             greedy = not drive and ep_rng.random() < args.greedy_fraction
@@ -839,6 +853,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             # Look inside: the blockers' rows as stored, and how many carry a move label (the expert's way out).
             stats["blocker_rows"] = int(rows["blocker"].sum())
             stats["blocker_move_labels"] = int((rows["expert"][rows["blocker"]] > 0).sum())
+            stats["blocker_states"] = distinct_observations(rows, rows["blocker"])
             replay.add(rows)
             state["episodes"] += 1
             window["rows"] += len(rows["action"])
@@ -969,6 +984,7 @@ def _log_row(args: Args, state: dict, window: dict, session_t0: float, epsilon: 
             "rescued_episodes": sum(e["rescued"] for e in eps),
             "blocker_rows": sum(e.get("blocker_rows", 0) for e in eps),
             "blocker_move_labels": sum(e.get("blocker_move_labels", 0) for e in eps),
+            "blocker_states": sum(e.get("blocker_states", 0) for e in eps),
             "elapsed_s": round(state["elapsed"] + time.monotonic() - session_t0, 1)}
 
 
@@ -1129,6 +1145,7 @@ def main(argv=None) -> int:
     docs = field_docs(Args)
     for f in dataclasses.fields(Args):
         flag, helptext = "--" + f.name.replace("_", "-"), f"{docs.get(f.name, '')} (default: {f.default!r})"
+        helptext = helptext.replace("%", "%%")  # argparse formats help with %
         if isinstance(f.default, bool):
             parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=f.default, help=helptext)
         elif isinstance(f.default, tuple):

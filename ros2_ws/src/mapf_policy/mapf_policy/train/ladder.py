@@ -112,7 +112,8 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
            "label_is_refused_move": 0, "labelled": 0, "blockers": 0, "blocker_on_goal": 0, "blocker_label_moves": 0,
            "blocker_label_rank": [], "blocker_moves_outweigh_stay": 0, "lead": []}
     for inst in generated_cases(seed, COMPARE_STREAM, [agents], cases, side, density):
-        env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode, heading=net.cfg.heading)
+        env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode, heading=net.cfg.heading,
+                      heading_refused=net.cfg.heading_refused)
         steps, stats = play_episode(forward, env, 0.0, np.random.default_rng(0))
         if stats["success"]:
             continue
