@@ -176,3 +176,15 @@ def test_an_imitation_run_weighs_the_pushed_blockers_rows(repo_root, tmp_path):
     assert [int(r["step"]) for r in rows] == [4, 8, 12] and all(float(r["l_hscl"]) > 0 for r in rows)
     bad = _run(repo_root, tmp_path, "--run-name", "bw2", "--blocker-weight", "4")  # the HSCL term: refused
     assert bad.returncode == 2 and "blocker_weight" in bad.stderr
+
+
+def test_greedy_episodes_get_out_of_fixed_points_by_rollouts(repo_root, tmp_path):
+    # Greedy actor episodes only, one agent on 6x6: an untrained greedy agent soon stands still (a wait, or a move
+    # into a wall), and a step elsewhere gets it closer.
+    run = _run(repo_root, tmp_path, "--run-name", "sr", "--stages", "1x6", "--total-steps", "24",
+               "--expert-drive-fraction", "0", "--greedy-fraction", "1", "--stuck-steps", "2", "--stuck-rollout", "8")
+    assert run.returncode == 0, run.stderr[-3000:]
+    rows = _rows(tmp_path / "runs" / "sr" / "train.csv")
+    assert all(int(r["deviations"]) >= 0 for r in rows) and sum(int(r["deviations"]) for r in rows) > 0
+    bad = _run(repo_root, tmp_path, "--run-name", "sr2", "--stuck-rollout", "8")  # no greedy episodes: refused
+    assert bad.returncode == 2 and "stuck_rollout" in bad.stderr

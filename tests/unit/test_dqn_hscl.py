@@ -567,3 +567,70 @@ def test_replay_batches_carry_the_blocker_flag():
     replay.add(episode_rows(steps, False, 0.99, 2))
     batch = replay.sample(8, np.random.default_rng(0))
     assert batch["blocker"].dtype == torch.bool and batch["blocker"].tolist() == (batch["index"] % 2 == 1).tolist()
+
+
+def _heuristic_greedy(fov, last_action, position):
+    """A stand-in greedy policy: a move that gets closer to the goal (right first), else stay."""
+    h = fov[:, 2:6, 4, 4]
+    return torch.cat([torch.full((fov.shape[0], 1), 0.5), h * torch.tensor([1.0, 1.0, 1.0, 1.5])], dim=1)
+
+
+def test_best_deviation_finds_the_step_aside_that_gets_a_greedy_team_out():
+    from mapf_policy.train.dqn_hscl import best_deviation
+    from mapf_world.grid import RIGHT, STAY, UP
+    # Agent 0 pushes right into agent 1, parked on its goal in an open 3x5 room: a greedy fixed point.
+    env = MapfEnv(np.zeros((3, 5), np.uint8), np.array([[1, 1], [1, 2]]), np.array([[1, 4], [1, 2]]),
+                  last_action="executed")
+    env.reset()
+    before = env.positions
+    assert best_deviation(_heuristic_greedy, env, np.array([RIGHT, STAY]), 20, 2) == (1, UP)  # solved soonest
+    assert np.array_equal(env.positions, before) and env.step_count == 0  # the search plays on copies only
+    steps, stats = play_episode(_heuristic_greedy, env, 0.0, np.random.default_rng(0), greedy_until_stuck=2,
+                                stuck_rollout=20)
+    assert stats["success"] and stats["deviations"] == 1
+    labels = np.stack(steps["expert"])
+    assert labels[2].tolist() == [-1, UP] and (np.delete(labels, 2, axis=0) == -1).all()  # the deviation is the label
+
+
+def test_best_deviation_gives_none_where_no_single_step_helps_and_the_episode_explores():
+    from mapf_policy.train.dqn_hscl import best_deviation
+    from mapf_world.grid import RIGHT, STAY
+    # A one-row corridor: agent 1 cannot step aside, and nothing one agent does brings the team closer.
+    env = MapfEnv(np.zeros((1, 5), np.uint8), np.array([[0, 1], [0, 2]]), np.array([[0, 4], [0, 2]]),
+                  last_action="executed", max_steps=12)
+    env.reset()
+    assert best_deviation(_heuristic_greedy, env, np.array([RIGHT, STAY]), 20, 2) is None
+    steps, stats = play_episode(_heuristic_greedy, env, 0.0, np.random.default_rng(0), greedy_until_stuck=2,
+                                stuck_rollout=20)
+    assert not stats["success"] and stats["deviations"] == 0 and stats["steps"] == 12
+
+
+def test_stuck_rollout_needs_greedy_fixed_points():
+    with pytest.raises(ValueError, match="stuck_rollout"):
+        Args(stuck_rollout=16).validate()
+    with pytest.raises(ValueError, match="stuck_rollout"):
+        Args(stuck_rollout=16, greedy_fraction=0.5, stuck_steps=3, stuck_rescue=True).validate()
+    Args(stuck_rollout=16, greedy_fraction=0.5, stuck_steps=3).validate()
+    with pytest.raises(ValueError, match="stuck_cycles"):
+        Args(stuck_cycles=True).validate()
+    with pytest.raises(ValueError, match="stuck_cycles"):
+        Args(stuck_cycles=True, greedy_fraction=0.5, stuck_steps=1, still_bins=4).validate()
+    Args(stuck_cycles=True, stuck_rollout=16, greedy_fraction=0.5, stuck_steps=1).validate()
+
+
+def test_stuck_cycles_catch_a_team_that_steps_back_and_forth():
+    from mapf_world.grid import LEFT, RIGHT
+
+    def back_and_forth(fov, last_action, position):  # right after anything but a right, then left: a 2-cycle
+        went_right = last_action[:, RIGHT] == 1
+        return torch.nn.functional.one_hot(torch.where(went_right, LEFT, RIGHT), 5).float()
+
+    def play(cycles):
+        env = MapfEnv(np.zeros((3, 5), np.uint8), np.array([[2, 0]]), np.array([[0, 4]]), last_action="executed",
+                      max_steps=40)
+        return play_episode(back_and_forth, env, 0.0, np.random.default_rng(0), greedy_until_stuck=2, stuck_rollout=8,
+                            stuck_cycles=cycles)[1]
+    still_only = play(False)  # it never stands still, so k still steps never call the search
+    assert still_only["deviations"] == 0 and not still_only["success"]
+    cycles = play(True)  # each repeat of (position, last action) calls it: a step up, closer to the goal
+    assert cycles["deviations"] >= 1 and cycles["success"]

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import copy
 import dataclasses
 import json
 import os
@@ -208,6 +209,20 @@ class Args:
     k >= 1), once the team has stood still k steps the expert drives it from that fixed point on, with no random
     steps, so the replay holds the greedy team's own deadlocks together with the expert's joint way out of them
     (its labels for HSCL, its outcome for the DQN term). False: exploration starts there (stuck_steps)."""
+    stuck_rollout: int = 0
+    """Beyond the paper (policy improvement by rollouts at the greedy team's fixed points): in a greedy actor episode
+    (greedy_fraction, stuck_steps k >= 1), once the team has stood still k steps, every agent's other actions are
+    tried on copies of the episode, one agent deviating for one step with the others greedy and greedy play after it
+    for up to this many steps (best_deviation). The deviation whose copy is solved soonest, else the one that leaves
+    the team closest to its goals, if closer than now, is played and becomes that agent's label at the step (in place
+    of the expert's): a label of what gets this greedy team out, where the joint expert's labels at fixed points
+    assume teammates that give way (issue 20). No deviation helps: exploration starts (stuck_steps). 0: off."""
+    stuck_cycles: bool = False
+    """Beyond the paper: a greedy actor team is stuck (stuck_steps' exploration, stuck_rescue, stuck_rollout) where its
+    joint state (positions, executed and requested last actions: what every observation is built from) repeats one
+    it was in earlier in the episode. The greedy team is deterministic, so it then loops for ever: a fixed point, or
+    a cycle of agents stepping back and forth, which k still steps never catch. stuck_steps must still be >= 1 (it
+    turns the mechanism on). False: k still steps."""
     blocker_weight: float = 1.0
     """Beyond the paper: with `imitation` 'ce', a labelled row of a pushed blocker (an agent that chose to stay on a cell
     another agent's refused move tried to enter, pushed_blockers) weighs this many times an ordinary labelled row in
@@ -266,6 +281,15 @@ class Args:
         need(self.stuck_steps >= 0, f"stuck_steps must be >= 0, got {self.stuck_steps}")
         need(not self.stuck_value or (self.stuck_steps >= 2 and self.greedy_fraction > 0),
              "stuck_value needs greedy_fraction > 0 and stuck_steps >= 2 (a fixed point of the greedy team)")
+        need(self.stuck_rollout >= 0, f"stuck_rollout must be >= 0, got {self.stuck_rollout}")
+        need(not self.stuck_rollout or (self.stuck_steps >= 1 and self.greedy_fraction > 0 and not self.stuck_value
+                                        and not self.stuck_rescue and not self.recurrent),
+             "stuck_rollout needs greedy_fraction > 0 and stuck_steps >= 1, and none of stuck_value, stuck_rescue, "
+             "recurrent")
+        need(not self.stuck_cycles or (self.stuck_steps >= 1 and self.greedy_fraction > 0 and not self.still_bins
+                                       and not self.recurrent),
+             "stuck_cycles needs greedy_fraction > 0 and stuck_steps >= 1, and no still input or memory (their "
+             "observations are not a function of the joint state)")
         need(not self.stuck_rescue or (self.stuck_steps >= 1 and self.greedy_fraction > 0 and not self.stuck_value),
              "stuck_rescue needs greedy_fraction > 0 and stuck_steps >= 1, and not stuck_value (which ends the episode there)")
         need(self.blocking_penalty <= 0, f"blocking_penalty is a penalty: must be <= 0, got {self.blocking_penalty}")
@@ -400,7 +424,8 @@ def acting(net: QNetwork):
 def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle=None, budget: float = 0.0,
                  expert_drives: bool = False, greedy_until_stuck: int = 0,
                  blocking: tuple[float, int] = (0.0, 0), goal_exploration: bool = True,
-                 stuck_ends: bool = False, stuck_rescue: bool = False) -> tuple[dict, dict]:
+                 stuck_ends: bool = False, stuck_rescue: bool = False, stuck_rollout: int = 0,
+                 stuck_cycles: bool = False) -> tuple[dict, dict]:
     """One episode, every agent acting on its own observation (all in one batch).
 
     Actions: argmax Q (the paper's greedy rule; ties to the lowest index), or the expert's when
@@ -414,7 +439,11 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
     (network_inputs); a plain function stands for a network with the paper's inputs. `blocking` (penalty, margin)
     adds the penalty to the reward of every agent that blocking_agents finds after a step (beyond the paper). With
     `stuck_ends`, the episode ends instead where exploration would start (stats["fixed_point"]); with `stuck_rescue`
-    (and `oracle`), the expert drives from there on, with no random steps (stats["rescued"])."""
+    (and `oracle`), the expert drives from there on, with no random steps (stats["rescued"]); with `stuck_rollout` H,
+    best_deviation's move is played there and labels its agent's row (stats["deviations"]), random steps only where
+    no deviation helps (at most MAX_DEVIATION_SEARCHES searches an episode). With `stuck_cycles`, the team is stuck
+    where its joint state (MapfEnv.joint_state) repeats one it was in before in the episode, a cycle of any period of
+    the deterministic greedy team, instead of after k still steps."""
     cfg = getattr(forward, "cfg", NetworkConfig())
     recurrent = isinstance(forward, RecurrentActor)
     obs, _ = env.reset()
@@ -423,7 +452,8 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
         forward.reset(env.n_agents)
         steps["h_in"] = []
     spent, labelled, done, terminated, blocked = 0.0, 0, False, False, 0
-    still, eps_now, rescued = 0, (0.0 if greedy_until_stuck > 0 else epsilon), False
+    still, eps_now, rescued, deviations, searches = 0, (0.0 if greedy_until_stuck > 0 else epsilon), False, 0, 0
+    stuck, seen = False, {env.joint_state()}
     while not done:
         expert = np.full(env.n_agents, -1, dtype=np.int64)
         if oracle is not None and spent < budget:
@@ -446,6 +476,15 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
             with torch.inference_mode():
                 q = forward(*network_inputs(obs, cfg)).numpy()
             actions = q.argmax(axis=1)
+            if stuck_rollout and stuck and eps_now == 0.0:
+                searches += 1
+                dev = (best_deviation(forward, env, actions, stuck_rollout, greedy_until_stuck, stuck_cycles)
+                       if searches <= MAX_DEVIATION_SEARCHES else None)
+                if dev is None:
+                    eps_now = epsilon  # no single step of one agent gets the team moving: explore, as stuck_steps does
+                else:
+                    actions[dev[0]] = expert[dev[0]] = dev[1]
+                    deviations += 1
         explore = rng.random(env.n_agents) < eps_now
         if not goal_exploration:
             explore &= ~np.all(env.positions == env.goals, axis=1)
@@ -456,10 +495,13 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
             blockers = blocking_agents(env.grid, env.positions, env.goals, env.dist, blocking[1])
             reward, blocked = reward + blocking[0] * blockers, blocked + int(blockers.sum())
         still = still + 1 if np.array_equal(before, env.positions) else 0
-        fixed_point = greedy_until_stuck > 0 and still >= greedy_until_stuck and not terminated
+        state_now = env.joint_state()
+        stuck = greedy_until_stuck > 0 and (state_now in seen if stuck_cycles else still >= greedy_until_stuck)
+        seen.add(state_now)
+        fixed_point = stuck and not terminated
         if fixed_point and stuck_rescue and oracle is not None:
             expert_drives = rescued = True
-        elif fixed_point and not rescued:
+        elif fixed_point and not rescued and not stuck_rollout:
             eps_now = epsilon
         for k, v in (("obs", obs), ("action", actions), ("reward", reward), ("expert", expert), ("failed", info["failed"])):
             steps[k].append(v)
@@ -467,7 +509,50 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
     return steps, {"success": bool(terminated), "steps": env.step_count, "n_agents": env.n_agents,
                    "fixed_point": bool(fixed_point and stuck_ends),
                    "labelled": labelled, "oracle_s": spent, "expert_drove": expert_drives and labelled > 0, "rescued": rescued,
-                   "blocked": blocked}
+                   "blocked": blocked, "deviations": deviations}
+
+
+MAX_DEVIATION_SEARCHES = 8  # best_deviation calls an episode (each costs up to 4 N rollouts of `horizon` steps)
+
+
+def best_deviation(forward, env: MapfEnv, actions: np.ndarray, horizon: int, stuck_steps: int,
+                   cycles: bool = False) -> tuple[int, int] | None:
+    """(agent, action) that gets a greedy team out of a fixed point, or None.
+
+    For each agent i and each action a other than its greedy one (actions), a copy of the episode plays the joint
+    actions with a in place of agent i's, then greedy play for up to `horizon` steps, stopping early where the copy
+    stands still `stuck_steps` steps again (with `cycles`: where its joint state repeats, so it loops for ever). A deviation refused at once is skipped. Best: solved in the fewest steps;
+    else the lowest sum over agents of the distance to the goal at the copy's end, if below the sum now."""
+    dist = env.dist
+    idx = np.arange(env.n_agents)
+    sum_dist = lambda pos: int(dist[idx, pos[:, 0], pos[:, 1]].sum())  # noqa: E731
+    cfg = getattr(forward, "cfg", NetworkConfig())
+    best, best_key = None, (1, sum_dist(env.positions))  # (0, steps) solved; (1, sum of distances) not
+    for i in range(env.n_agents):
+        for a in range(5):
+            if a == actions[i]:
+                continue
+            sim = copy.deepcopy(env)
+            joint = actions.copy()
+            joint[i] = a
+            obs, _, done, truncated, info = sim.step(joint)
+            if info["failed"][i]:
+                continue
+            still, steps, visited, looped = 0, 1, {sim.joint_state()}, False
+            while not (done or truncated) and steps <= horizon and not looped and (cycles or still < stuck_steps):
+                with torch.inference_mode():
+                    greedy = forward(*network_inputs(obs, cfg)).numpy().argmax(axis=1)
+                before = sim.positions
+                obs, _, done, truncated, _ = sim.step(greedy)
+                still = still + 1 if np.array_equal(before, sim.positions) else 0
+                steps += 1
+                if cycles:
+                    looped = sim.joint_state() in visited
+                    visited.add(sim.joint_state())
+            key = (0, steps) if done else (1, sum_dist(sim.positions))
+            if key < best_key:
+                best, best_key = (i, a), key
+    return best
 
 
 def _labelled_moves_into(positions: np.ndarray, expert: np.ndarray, cells: np.ndarray) -> np.ndarray:
@@ -774,7 +859,7 @@ TRAIN_COLUMNS = ("step", "stage", "episodes", "l_dqn", "l_hscl", "hscl_weight", 
                  "refused_minus_stay", "refused_rows", "adv_norm", "q_mean", "mc_return_mean", "q_return_corr", "agreement",
                  "train_success", "train_steps", "mean_team", "samples_per_s", "learner_steps_per_s", "env_rows_per_s",
                  "epsilon", "blocked_share", "rescued_episodes", "blocker_rows", "blocker_move_labels", "blocker_states",
-                 "elapsed_s")
+                 "deviations", "elapsed_s")
 EVAL_COLUMNS = ("step", "stage", "agents", "size", "success_rate", "average_step")
 
 
@@ -846,7 +931,9 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                                         greedy_until_stuck=args.stuck_steps if greedy else 0,
                                         blocking=(args.blocking_penalty, args.blocking_margin),
                                         goal_exploration=args.goal_exploration,
-                                        stuck_ends=args.stuck_value and greedy, stuck_rescue=args.stuck_rescue and greedy)
+                                        stuck_ends=args.stuck_value and greedy, stuck_rescue=args.stuck_rescue and greedy,
+                                        stuck_rollout=args.stuck_rollout if greedy else 0,
+                                        stuck_cycles=args.stuck_cycles)
             rows = episode_rows(steps, stats["success"], args.gamma, args.n_step, args.feasible_labels,
                                 STILL_KEYS[args.still_count], goals=None if args.parked_labels else env.goals,
                                 episode=state["episodes"], fixed_point=stats["fixed_point"])
@@ -985,6 +1072,7 @@ def _log_row(args: Args, state: dict, window: dict, session_t0: float, epsilon: 
             "blocker_rows": sum(e.get("blocker_rows", 0) for e in eps),
             "blocker_move_labels": sum(e.get("blocker_move_labels", 0) for e in eps),
             "blocker_states": sum(e.get("blocker_states", 0) for e in eps),
+            "deviations": sum(e.get("deviations", 0) for e in eps),
             "elapsed_s": round(state["elapsed"] + time.monotonic() - session_t0, 1)}
 
 
