@@ -188,3 +188,12 @@ def test_greedy_episodes_get_out_of_fixed_points_by_rollouts(repo_root, tmp_path
     assert all(int(r["deviations"]) >= 0 for r in rows) and sum(int(r["deviations"]) for r in rows) > 0
     bad = _run(repo_root, tmp_path, "--run-name", "sr2", "--stuck-rollout", "8")  # no greedy episodes: refused
     assert bad.returncode == 2 and "stuck_rollout" in bad.stderr
+
+
+def test_mined_greedy_episodes_add_only_rollout_labels(repo_root, tmp_path):
+    run = _run(repo_root, tmp_path, "--run-name", "mine", "--stages", "1x6", "--total-steps", "24",
+               "--greedy-fraction", "0.5", "--stuck-steps", "2", "--stuck-rollout", "8", "--mine-episodes", "2")
+    assert run.returncode == 0, run.stderr[-3000:]
+    rows = _rows(tmp_path / "runs" / "mine" / "train.csv")
+    assert sum(int(r["mined_labels"]) for r in rows) > 0
+    assert json.loads((tmp_path / "runs" / "mine" / "state.json").read_text())["mined"] > 0

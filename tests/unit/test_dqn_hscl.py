@@ -600,9 +600,13 @@ def test_best_deviation_gives_none_where_no_single_step_helps_and_the_episode_ex
                   last_action="executed", max_steps=12)
     env.reset()
     assert best_deviation(_heuristic_greedy, env, np.array([RIGHT, STAY]), 20, 2) is None
+    steps, stats = play_episode(_heuristic_greedy, env, 0.3, np.random.default_rng(0), greedy_until_stuck=2,
+                                stuck_rollout=20)
+    assert not stats["success"] and stats["deviations"] == 0 and stats["steps"] == 12  # explored to the time limit
     steps, stats = play_episode(_heuristic_greedy, env, 0.0, np.random.default_rng(0), greedy_until_stuck=2,
                                 stuck_rollout=20)
-    assert not stats["success"] and stats["deviations"] == 0 and stats["steps"] == 12
+    assert stats["deviations"] == 0 and stats["steps"] == 2  # with nothing to explore with, it ends where it is stuck
+    assert len(steps["obs"]) == len(steps["action"]) + 1 == 3  # k = 2 still steps, then the search
 
 
 def test_stuck_rollout_needs_greedy_fixed_points():
@@ -616,6 +620,8 @@ def test_stuck_rollout_needs_greedy_fixed_points():
     with pytest.raises(ValueError, match="stuck_cycles"):
         Args(stuck_cycles=True, greedy_fraction=0.5, stuck_steps=1, still_bins=4).validate()
     Args(stuck_cycles=True, stuck_rollout=16, greedy_fraction=0.5, stuck_steps=1).validate()
+    with pytest.raises(ValueError, match="mine_episodes"):
+        Args(mine_episodes=2).validate()
 
 
 def test_stuck_cycles_catch_a_team_that_steps_back_and_forth():

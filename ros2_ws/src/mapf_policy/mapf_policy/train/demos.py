@@ -29,6 +29,7 @@ from mapf_policy.train.expert import ExpertFailed, plan_actions, solve
 from mapf_policy.train.replay import EpisodeRecorder, concat, field_specs
 
 DEMO_STREAM, ACTOR_STREAM, VALID_STREAM, COMPARE_STREAM = 1, 2, 3, 4
+MINE_STREAM = 5  # dqn_hscl's mined greedy episodes (Args.mine_episodes)
 
 
 def instance_rng(seed: int, stream: int, index: int) -> np.random.Generator:

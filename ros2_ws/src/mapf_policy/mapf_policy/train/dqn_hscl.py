@@ -49,7 +49,7 @@ from mapf_policy.inference import FastForward, InferenceNet
 from mapf_policy.losses import expert_agreement, hscl_loss, margin_loss
 from mapf_policy.model_io import load_model, save_model
 from mapf_policy.network import QNetwork, network_inputs, still_onehot
-from mapf_policy.train.demos import ACTOR_STREAM, VALID_STREAM, generated_cases, instance_rng
+from mapf_policy.train.demos import ACTOR_STREAM, MINE_STREAM, VALID_STREAM, generated_cases, instance_rng
 from mapf_policy.train.expert import ExpertFailed, make_oracle
 from mapf_policy.train.log import CsvLog, read_csv, truncate_log
 from mapf_world.env import LAST_ACTION_MODES, MapfEnv
@@ -217,6 +217,12 @@ class Args:
     the team closest to its goals, if closer than now, is played and becomes that agent's label at the step (in place
     of the expert's): a label of what gets this greedy team out, where the joint expert's labels at fixed points
     assume teammates that give way (issue 20). No deviation helps: exploration starts (stuck_steps). 0: off."""
+    mine_episodes: int = 0
+    """Beyond the paper, with stuck_rollout: after each actor episode this many extra greedy episodes of the same stage
+    (their own seed stream, MINE_STREAM) play with stuck_rollout's search wherever the team is stuck, and end where no
+    deviation helps; only the rows of the deviating agents at those steps, labelled with their deviation and with no
+    expert label elsewhere, enter the replay. Rollout labels then come by the hundred, not one per greedy actor episode
+    that gets stuck. 0: none."""
     stuck_cycles: bool = False
     """Beyond the paper: a greedy actor team is stuck (stuck_steps' exploration, stuck_rescue, stuck_rollout) where its
     joint state (positions, executed and requested last actions: what every observation is built from) repeats one
@@ -282,6 +288,9 @@ class Args:
         need(not self.stuck_value or (self.stuck_steps >= 2 and self.greedy_fraction > 0),
              "stuck_value needs greedy_fraction > 0 and stuck_steps >= 2 (a fixed point of the greedy team)")
         need(self.stuck_rollout >= 0, f"stuck_rollout must be >= 0, got {self.stuck_rollout}")
+        need(self.mine_episodes >= 0, f"mine_episodes must be >= 0, got {self.mine_episodes}")
+        need(not self.mine_episodes or (self.stuck_rollout > 0 and not self.still_bins and not self.recurrent),
+             "mine_episodes needs stuck_rollout > 0 (its labeller), and no still input or memory (stuck_cycles)")
         need(not self.stuck_rollout or (self.stuck_steps >= 1 and self.greedy_fraction > 0 and not self.stuck_value
                                         and not self.stuck_rescue and not self.recurrent),
              "stuck_rollout needs greedy_fraction > 0 and stuck_steps >= 1, and none of stuck_value, stuck_rescue, "
@@ -482,6 +491,8 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
                        if searches <= MAX_DEVIATION_SEARCHES else None)
                 if dev is None:
                     eps_now = epsilon  # no single step of one agent gets the team moving: explore, as stuck_steps does
+                    if epsilon == 0.0:  # nothing would ever change: the episode is over
+                        break
                 else:
                     actions[dev[0]] = expert[dev[0]] = dev[1]
                     deviations += 1
@@ -859,7 +870,7 @@ TRAIN_COLUMNS = ("step", "stage", "episodes", "l_dqn", "l_hscl", "hscl_weight", 
                  "refused_minus_stay", "refused_rows", "adv_norm", "q_mean", "mc_return_mean", "q_return_corr", "agreement",
                  "train_success", "train_steps", "mean_team", "samples_per_s", "learner_steps_per_s", "env_rows_per_s",
                  "epsilon", "blocked_share", "rescued_episodes", "blocker_rows", "blocker_move_labels", "blocker_states",
-                 "deviations", "elapsed_s")
+                 "deviations", "mined_labels", "elapsed_s")
 EVAL_COLUMNS = ("step", "stage", "agents", "size", "success_rate", "average_step")
 
 
@@ -942,6 +953,22 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             stats["blocker_move_labels"] = int((rows["expert"][rows["blocker"]] > 0).sum())
             stats["blocker_states"] = distinct_observations(rows, rows["blocker"])
             replay.add(rows)
+            # Beyond the paper (mine_episodes): greedy episodes whose only rows are the rollout search's deviations.
+            stats["mined_labels"] = 0
+            for _ in range(args.mine_episodes):
+                mined = generate_instance(instance_rng(args.seed, MINE_STREAM, state.get("mined", 0)), size=size,
+                                          density=args.density, n_agents=agents)
+                state["mined"] = state.get("mined", 0) + 1
+                m_env = MapfEnv(mined.grid, mined.starts, mined.goals, max_steps=args.max_episode_steps,
+                                last_action=args.last_action, heading=args.heading, heading_refused=args.heading_refused)
+                m_steps, m_stats = play_episode(act_q, m_env, 0.0, rng, greedy_until_stuck=1,
+                                                stuck_rollout=args.stuck_rollout, stuck_cycles=True)
+                if m_stats["deviations"]:
+                    m_rows = episode_rows(m_steps, m_stats["success"], args.gamma, args.n_step, False,
+                                          STILL_KEYS[args.still_count], episode=state["episodes"])
+                    keep = m_rows["expert"] >= 0
+                    replay.add({k: v[keep] for k, v in m_rows.items()})
+                    stats["mined_labels"] += int(keep.sum())
             state["episodes"] += 1
             window["rows"] += len(rows["action"])
             window["eps"].append(stats)
@@ -1073,6 +1100,7 @@ def _log_row(args: Args, state: dict, window: dict, session_t0: float, epsilon: 
             "blocker_move_labels": sum(e.get("blocker_move_labels", 0) for e in eps),
             "blocker_states": sum(e.get("blocker_states", 0) for e in eps),
             "deviations": sum(e.get("deviations", 0) for e in eps),
+            "mined_labels": sum(e.get("mined_labels", 0) for e in eps),
             "elapsed_s": round(state["elapsed"] + time.monotonic() - session_t0, 1)}
 
 
