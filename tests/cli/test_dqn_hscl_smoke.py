@@ -197,3 +197,9 @@ def test_mined_greedy_episodes_add_only_rollout_labels(repo_root, tmp_path):
     rows = _rows(tmp_path / "runs" / "mine" / "train.csv")
     assert sum(int(r["mined_labels"]) for r in rows) > 0
     assert json.loads((tmp_path / "runs" / "mine" / "state.json").read_text())["mined"] > 0
+    # The same with the mined rows in a replay of their own, a quarter of every batch
+    run = _run(repo_root, tmp_path, "--run-name", "mine2", "--stages", "1x6", "--total-steps", "24",
+               "--greedy-fraction", "0.5", "--stuck-steps", "2", "--stuck-rollout", "8", "--mine-episodes", "2",
+               "--mined-batch-share", "0.25")
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert sum(int(r["mined_labels"]) for r in _rows(tmp_path / "runs" / "mine2" / "train.csv")) > 0

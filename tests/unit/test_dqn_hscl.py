@@ -7,7 +7,7 @@ import torch
 
 from mapf_policy.config import NetworkConfig
 from mapf_policy.network import QNetwork, count_parameters
-from mapf_policy.train.dqn_hscl import Args, Replay, episode_rows, losses, parse_stage, play_episode
+from mapf_policy.train.dqn_hscl import Args, Replay, episode_rows, losses, mixed_sample, parse_stage, play_episode
 from mapf_world.env import MapfEnv
 from mapf_world.grid import STAY
 
@@ -60,6 +60,23 @@ def test_replay_keeps_the_newest_and_builds_inputs():
     assert rep.size == 3 and sorted(rep.data["position"][:, 0].tolist()) == [2, 3, 4]
     b = rep.sample(4, np.random.default_rng(0))
     assert b["fov"].shape == (4, 6, 9, 9) and b["last_action"].shape == (4, 5) and b["action"].dtype == torch.int64
+
+
+def test_a_mixed_batch_draws_its_share_from_the_mined_replay_once_it_can():
+    main, mined = Replay(100), Replay(100)
+    main.add(episode_rows(_steps([-1] * 20), terminated=False, gamma=0.9, n_step=1))
+    rng = np.random.default_rng(0)
+    b, n_main = mixed_sample(main, mined, 8, 0.25, rng)  # the mined replay is empty: all from the main one
+    assert n_main == 8 and len(b["action"]) == 8
+    mined_rows = episode_rows(_steps([3] * 4), terminated=True, gamma=0.9, n_step=1)
+    mined_rows["position"][:] = 99  # tells the mined rows apart
+    mined.add(mined_rows)
+    b, n_main = mixed_sample(main, mined, 8, 0.25, rng)
+    assert n_main == 6 and b["fov"].shape == (8, 6, 9, 9) and b["index"].shape == (8,)
+    assert (b["position"][:6, 0] < 99).all() and (b["position"][6:, 0] == 99).all()
+    assert mixed_sample(main, None, 8, 0.25, rng)[1] == 8
+    with pytest.raises(ValueError, match="mined_batch_share needs mine_episodes"):
+        Args(mined_batch_share=0.25).validate()
 
 
 def test_prioritised_replay_draws_rows_by_td_error():

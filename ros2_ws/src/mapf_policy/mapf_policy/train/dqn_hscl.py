@@ -223,6 +223,10 @@ class Args:
     deviation helps; only the rows of the deviating agents at those steps, labelled with their deviation and with no
     expert label elsewhere, enter the replay. Rollout labels then come by the hundred, not one per greedy actor episode
     that gets stuck. 0: none."""
+    mined_batch_share: float = 0.0
+    """Beyond the paper, with mine_episodes: the mined rows go to a replay of their own (MINED_CAPACITY rows) and this
+    share of every batch is drawn from it, the rest from the main replay. In the main replay they are 1-2 % of the
+    rows (issue 20, r76-r77). 0: they share the main replay."""
     stuck_cycles: bool = False
     """Beyond the paper: a greedy actor team is stuck (stuck_steps' exploration, stuck_rescue, stuck_rollout) where its
     joint state (positions, executed and requested last actions: what every observation is built from) repeats one
@@ -291,6 +295,8 @@ class Args:
         need(self.mine_episodes >= 0, f"mine_episodes must be >= 0, got {self.mine_episodes}")
         need(not self.mine_episodes or (self.stuck_rollout > 0 and not self.still_bins and not self.recurrent),
              "mine_episodes needs stuck_rollout > 0 (its labeller), and no still input or memory (stuck_cycles)")
+        need(0 <= self.mined_batch_share < 1, f"mined_batch_share must be in [0, 1), got {self.mined_batch_share}")
+        need(not self.mined_batch_share or self.mine_episodes > 0, "mined_batch_share needs mine_episodes > 0")
         need(not self.stuck_rollout or (self.stuck_steps >= 1 and self.greedy_fraction > 0 and not self.stuck_value
                                         and not self.stuck_rescue and not self.recurrent),
              "stuck_rollout needs greedy_fraction > 0 and stuck_steps >= 1, and none of stuck_value, stuck_rescue, "
@@ -743,6 +749,20 @@ class Replay:
             self.max_priority = max(self.max_priority, float(p.max()))
 
 
+MINED_CAPACITY = 50_000  # rows of the mined replay (Args.mined_batch_share): 3,000 learner steps mine about 2,700
+
+
+def mixed_sample(replay: Replay, mined: Replay | None, n: int, share: float, rng) -> tuple[dict, int]:
+    """A batch of n rows, round(share * n) of them from `mined` (last in the batch) once it holds that many, the
+    rest from `replay`: (batch, rows from replay). "index" is meaningful for the first rows only (update_priorities)."""
+    k = int(round(share * n)) if mined is not None else 0
+    if k == 0 or mined.size < k:
+        return replay.sample(n, rng), n
+    a, b = replay.sample(n - k, rng), mined.sample(k, rng)
+    return {key: (np.concatenate([a[key], b[key]]) if isinstance(a[key], np.ndarray) else torch.cat([a[key], b[key]]))
+            for key in a}, n - k
+
+
 def recurrent_batch(net: QNetwork, target: QNetwork, online_fast, target_fast, act_fast, replay: Replay, args: Args,
                     rng) -> tuple:
     """A recurrent network's batch: (rows, q, next_q_target, next_q_online or None), the rows those of losses().
@@ -904,6 +924,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
     params = [p for p in net.parameters()]
     replay = Replay(args.replay_capacity, args.priority_alpha, args.priority_beta,
                     hidden=ncfg.hidden_features if args.recurrent else 0, channels=ncfg.fov_channels)
+    mined_replay = Replay(MINED_CAPACITY, channels=ncfg.fov_channels) if args.mined_batch_share > 0 else None
     valid = {k: generated_cases(args.seed, VALID_STREAM, [a], args.eval_cases, s, args.density)
              for k, (a, s) in enumerate(stages)}
     train_log, eval_log = CsvLog(run_dir / "train.csv", TRAIN_COLUMNS), CsvLog(run_dir / "eval.csv", EVAL_COLUMNS)
@@ -967,7 +988,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                     m_rows = episode_rows(m_steps, m_stats["success"], args.gamma, args.n_step, False,
                                           STILL_KEYS[args.still_count], episode=state["episodes"])
                     keep = m_rows["expert"] >= 0
-                    replay.add({k: v[keep] for k, v in m_rows.items()})
+                    (mined_replay or replay).add({k: v[keep] for k, v in m_rows.items()})
                     stats["mined_labels"] += int(keep.sum())
             state["episodes"] += 1
             window["rows"] += len(rows["action"])
@@ -984,7 +1005,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                                                                         replay, args, rng)
                     q, q_target = q.float(), None
                 else:
-                    batch = replay.sample(args.batch_size, rng)
+                    batch, n_main = mixed_sample(replay, mined_replay, args.batch_size, args.mined_batch_share, rng)
                     still = (still_onehot(batch["still"], args.still_bins),) if args.still_bins else ()
                     next_still = (still_onehot(batch["next_still"], args.still_bins),) if args.still_bins else ()
                     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=args.bf16):
@@ -1037,7 +1058,10 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(params, args.grad_clip)
                 opt.step()
-                replay.update_priorities(batch["index"], td)
+                if args.recurrent:
+                    replay.update_priorities(batch["index"], td)
+                else:  # the mined rows, last in the batch, keep no priorities
+                    replay.update_priorities(batch["index"][:n_main], td[:n_main])
                 window["steps"] += 1
                 bar.update(1)
                 if state["step"] % args.target_update_every == 0:
