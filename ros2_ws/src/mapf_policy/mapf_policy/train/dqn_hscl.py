@@ -988,7 +988,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                     m_rows = episode_rows(m_steps, m_stats["success"], args.gamma, args.n_step, False,
                                           STILL_KEYS[args.still_count], episode=state["episodes"])
                     keep = m_rows["expert"] >= 0
-                    (mined_replay or replay).add({k: v[keep] for k, v in m_rows.items()})
+                    (replay if mined_replay is None else mined_replay).add({k: v[keep] for k, v in m_rows.items()})
                     stats["mined_labels"] += int(keep.sum())
             state["episodes"] += 1
             window["rows"] += len(rows["action"])
@@ -1003,7 +1003,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=args.bf16):
                         batch, q, next_q, next_online = recurrent_batch(net, target, online_q, target_q, act_q.fast,
                                                                         replay, args, rng)
-                    q, q_target = q.float(), None
+                    q, q_target, n_main = q.float(), None, len(batch["index"])
                 else:
                     batch, n_main = mixed_sample(replay, mined_replay, args.batch_size, args.mined_batch_share, rng)
                     still = (still_onehot(batch["still"], args.still_bins),) if args.still_bins else ()
@@ -1058,10 +1058,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(params, args.grad_clip)
                 opt.step()
-                if args.recurrent:
-                    replay.update_priorities(batch["index"], td)
-                else:  # the mined rows, last in the batch, keep no priorities
-                    replay.update_priorities(batch["index"][:n_main], td[:n_main])
+                replay.update_priorities(batch["index"][:n_main], td[:n_main])  # mined rows (last) keep none
                 window["steps"] += 1
                 bar.update(1)
                 if state["step"] % args.target_update_every == 0:
