@@ -203,3 +203,40 @@ def test_mined_greedy_episodes_add_only_rollout_labels(repo_root, tmp_path):
                "--mined-batch-share", "0.25")
     assert run.returncode == 0, run.stderr[-3000:]
     assert sum(int(r["mined_labels"]) for r in _rows(tmp_path / "runs" / "mine2" / "train.csv")) > 0
+    # Mining a larger team once at the last stage; a mine stage without mining is refused
+    run = _run(repo_root, tmp_path, "--run-name", "mine3", "--stages", "1x6", "--total-steps", "24",
+               "--greedy-fraction", "0.5", "--stuck-steps", "2", "--stuck-rollout", "8", "--mine-episodes", "2",
+               "--mine-stage", "3x6")
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert sum(int(r["mined_labels"]) for r in _rows(tmp_path / "runs" / "mine3" / "train.csv")) > 0
+    for bad_args, word in ((["--mine-stage", "3x6"], "mine_stage"), (["--greedy-fraction", "0.5", "--stuck-steps", "2",
+                                                                      "--stuck-rollout", "8", "--mine-episodes", "2",
+                                                                      "--mine-stage", "3by6"], "AGENTSxSIZE")):
+        bad = _run(repo_root, tmp_path, "--run-name", "mine4", *bad_args)
+        assert bad.returncode == 2 and word in bad.stderr, bad.stderr[-500:]
+
+
+def test_averaged_weights_are_validated_saved_published_and_resumed(repo_root, tmp_path):
+    pub = tmp_path / "published"
+    run = _run(repo_root, tmp_path, "--run-name", "ema", "--ema-decay", "0.5", "--publish-dir", str(pub))
+    assert run.returncode == 0, run.stderr[-3000:]
+    d = tmp_path / "runs" / "ema"
+    last, _, _ = load_model(d / "last.pt")
+    ema, _, meta = load_model(d / "ema.pt")
+    assert meta["ema_decay"] == 0.5 and meta["step"] == 12 and (pub / "ema.pt").is_file()
+    # After 12 steps at decay 0.5 the average is near, but not at, the online weights.
+    diffs = [float((a - b).detach().abs().max()) for a, b in zip(last.parameters(), ema.parameters())]
+    assert max(diffs) > 0
+    evals = _rows(d / "eval.csv")
+    last_stage = [e for e in evals if e["stage"] == "2x6"]
+    assert last_stage and all(0.0 <= float(e["ema_success_rate"]) <= 1.0 for e in last_stage)
+    assert all(e["ema_success_rate"] == "" for e in evals if e["stage"] == "1x6")
+    # A fresh machine resumes the average from the published ema.pt, not from the online weights.
+    shutil.rmtree(tmp_path / "runs")
+    fresh = _run(repo_root, tmp_path, "--run-name", "ema", "--ema-decay", "0.5", "--total-steps", "12",
+                 "--publish-dir", str(pub))
+    assert fresh.returncode == 0, fresh.stderr[-3000:]
+    again, _, _ = load_model(d / "ema.pt")
+    assert all(torch.equal(a, b) for a, b in zip(ema.parameters(), again.parameters()))
+    bad = _run(repo_root, tmp_path, "--run-name", "ema2", "--ema-decay", "1.0")
+    assert bad.returncode == 2 and "ema_decay" in bad.stderr

@@ -106,6 +106,11 @@ class Args:
     """Beyond the paper's silence on a schedule: with lr_end > 0 the learning rate falls linearly from lr to lr_end
     over total_steps (DHC halves it twice instead), so that the end weights are not one noisy draw of a curve that
     wanders. 0: constant lr."""
+    ema_decay: float = 0.0
+    """Beyond the paper: with ema_decay > 0 an exponential moving average of the online weights (Polyak averaging,
+    w_ema <- d w_ema + (1 - d) w after every gradient step) is kept beside them, validated greedy on the last stage at
+    every evaluation (eval.csv `ema_success_rate`) and saved as ema.pt, so that the model shipped is the average of a
+    curve that wanders, not its last draw. Actors and mining keep playing the online weights. 0: none."""
     gamma: float = 0.99
     """Discount factor."""
     n_step: int = 2
@@ -227,6 +232,11 @@ class Args:
     """Beyond the paper, with mine_episodes: the mined rows go to a replay of their own (MINED_CAPACITY rows) and this
     share of every batch is drawn from it, the rest from the main replay. In the main replay they are 1-2 % of the
     rows (issue 20, r76-r77). 0: they share the main replay."""
+    mine_stage: str = ""
+    """Beyond the paper, with mine_episodes: once the curriculum is at its last stage, the mining episodes of that
+    stage are played at this AGENTSxSIZE instead (e.g. 8x20 while training 4x20): a crowd gets stuck more often, so
+    each mining episode yields more rollout labels of the conflicts a smaller team meets more rarely. "": the
+    episode's own stage."""
     stuck_cycles: bool = False
     """Beyond the paper: a greedy actor team is stuck (stuck_steps' exploration, stuck_rescue, stuck_rollout) where its
     joint state (positions, executed and requested last actions: what every observation is built from) repeats one
@@ -332,6 +342,7 @@ class Args:
              "blocker_weight != 1 needs imitation 'ce' and a feed-forward network")
         need(0.0 < self.tau_h < 0.2, f"tau_h must lie in (0, 0.2), got {self.tau_h}")
         need(self.lr_end >= 0, f"lr_end must be >= 0, got {self.lr_end}")
+        need(0 <= self.ema_decay < 1, f"ema_decay must be in [0, 1), got {self.ema_decay}")
         need(0 <= self.advantage_learning < 1, f"advantage_learning must lie in [0, 1), got {self.advantage_learning}")
         need(not (self.recurrent and self.advantage_learning > 0), "advantage_learning is not implemented for recurrent")
         for name in ("lr", "grad_clip", "temperature", "replay_ratio", "huber_delta", "expert_time_limit"):
@@ -345,6 +356,9 @@ class Args:
         need(len(self.stages) >= 1, "stages must name at least one stage")
         for s in self.stages:
             parse_stage(s)
+        if self.mine_stage:
+            parse_stage(self.mine_stage)
+            need(self.mine_episodes > 0, "mine_stage needs mine_episodes > 0")
 
     def network_config(self) -> NetworkConfig:
         return NetworkConfig(dueling=self.dueling, still_bins=self.still_bins, still_count=self.still_count,
@@ -891,7 +905,7 @@ TRAIN_COLUMNS = ("step", "stage", "episodes", "l_dqn", "l_hscl", "hscl_weight", 
                  "train_success", "train_steps", "mean_team", "samples_per_s", "learner_steps_per_s", "env_rows_per_s",
                  "epsilon", "blocked_share", "rescued_episodes", "blocker_rows", "blocker_move_labels", "blocker_states",
                  "deviations", "mined_labels", "elapsed_s")
-EVAL_COLUMNS = ("step", "stage", "agents", "size", "success_rate", "average_step")
+EVAL_COLUMNS = ("step", "stage", "agents", "size", "success_rate", "average_step", "ema_success_rate", "ema_average_step")
 
 
 # --- the run ---------------------------------------------------------------------------------------------
@@ -908,7 +922,8 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
     target = QNetwork(ncfg).to(memory_format=torch.channels_last)
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     state = {"step": 0, "stage": 0, "episodes": 0, "elapsed": 0.0, "hscl_weight": args.hscl_weight}
-    resumed = _resume(run_dir, Path(args.publish_dir) if args.publish_dir else None, net, target, opt, state, ncfg)
+    ema = QNetwork(ncfg).to(memory_format=torch.channels_last) if args.ema_decay > 0 else None
+    resumed = _resume(run_dir, Path(args.publish_dir) if args.publish_dir else None, net, target, opt, state, ncfg, ema)
     if not resumed and args.init_model:
         loaded, cfg, _ = load_model(args.init_model)
         if cfg != ncfg:
@@ -917,11 +932,15 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
         print(f"started from the weights of {args.init_model}")
     if not resumed:
         target.load_state_dict(net.state_dict())
+    if ema is not None and not state.pop("ema_loaded", False):
+        ema.load_state_dict(net.state_dict())
     truncate_log(run_dir / "train.csv", state["step"])
     truncate_log(run_dir / "eval.csv", state["step"])
     add_log_columns(run_dir / "train.csv", TRAIN_COLUMNS)
+    add_log_columns(run_dir / "eval.csv", EVAL_COLUMNS)
     online_q, target_q, act_q = FastForward(net), InferenceNet(target), acting(net)
     params = [p for p in net.parameters()]
+    ema_params = list(ema.parameters()) if ema is not None else []
     replay = Replay(args.replay_capacity, args.priority_alpha, args.priority_beta,
                     hidden=ncfg.hidden_features if args.recurrent else 0, channels=ncfg.fov_channels)
     mined_replay = Replay(MINED_CAPACITY, channels=ncfg.fov_channels) if args.mined_batch_share > 0 else None
@@ -976,9 +995,11 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             replay.add(rows)
             # Beyond the paper (mine_episodes): greedy episodes whose only rows are the rollout search's deviations.
             stats["mined_labels"] = 0
+            m_agents, m_size = (parse_stage(args.mine_stage) if args.mine_stage and k == len(stages) - 1
+                                else (agents, size))
             for _ in range(args.mine_episodes):
-                mined = generate_instance(instance_rng(args.seed, MINE_STREAM, state.get("mined", 0)), size=size,
-                                          density=args.density, n_agents=agents)
+                mined = generate_instance(instance_rng(args.seed, MINE_STREAM, state.get("mined", 0)), size=m_size,
+                                          density=args.density, n_agents=m_agents)
                 state["mined"] = state.get("mined", 0) + 1
                 m_env = MapfEnv(mined.grid, mined.starts, mined.goals, max_steps=args.max_episode_steps,
                                 last_action=args.last_action, heading=args.heading, heading_refused=args.heading_refused)
@@ -1058,6 +1079,9 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(params, args.grad_clip)
                 opt.step()
+                if ema is not None:
+                    with torch.no_grad():
+                        torch._foreach_lerp_(ema_params, params, 1.0 - args.ema_decay)
                 replay.update_priorities(batch["index"][:n_main], td[:n_main])  # mined rows (last) keep none
                 window["steps"] += 1
                 bar.update(1)
@@ -1074,8 +1098,11 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                     current = state["stage"]
                     for j in range(min(len(stages), current + 2)):
                         sr, avg = greedy_success(act_q, valid[j], args.last_action, args.max_episode_steps)
+                        ema_sr, ema_avg = (greedy_success(acting(ema), valid[j], args.last_action, args.max_episode_steps)
+                                           if ema is not None and j == len(stages) - 1 else ("", ""))
                         eval_log.write({"step": state["step"], "stage": args.stages[j], "agents": stages[j][0],
-                                        "size": stages[j][1], "success_rate": sr, "average_step": avg})
+                                        "size": stages[j][1], "success_rate": sr, "average_step": avg,
+                                        "ema_success_rate": ema_sr, "ema_average_step": ema_avg})
                         if j == len(stages) - 1 and sr > state.get("best_success", -1.0):
                             # The best validation snapshot of the last stage (validation cases, never the ladder's):
                             # a run's last weights are one draw of a curve that wanders by +-0.1 at 40 cases.
@@ -1090,13 +1117,13 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                             tqdm.write(f"step {state['step']}: stage {args.stages[current]} passed (greedy {sr:.3f}), "
                                        f"now {args.stages[current + 1]}")
             if time.monotonic() - last_ckpt > 60 * args.checkpoint_minutes:
-                _checkpoint(args, run_dir, net, target, opt, state, session_t0)
+                _checkpoint(args, run_dir, net, target, opt, state, session_t0, ema)
                 last_ckpt = time.monotonic()
     except KeyboardInterrupt:
         tqdm.write(f"interrupted at step {state['step']}")
     finally:
         bar.close()
-        _checkpoint(args, run_dir, net, target, opt, state, session_t0)
+        _checkpoint(args, run_dir, net, target, opt, state, session_t0, ema)
     return state
 
 
@@ -1142,21 +1169,23 @@ def add_log_columns(path: Path, columns: tuple) -> None:
         writer = csv.DictWriter(f, fieldnames=columns, restval="")
         writer.writeheader()
         writer.writerows(rows)
-def _checkpoint(args: Args, run_dir: Path, net, target, opt, state: dict, session_t0: float) -> None:
+def _checkpoint(args: Args, run_dir: Path, net, target, opt, state: dict, session_t0: float, ema=None) -> None:
     """runs/<name>/checkpoint.pt (with the optimizer, for this machine) and last.pt + state.json (weights and
-    counters only: what publish_dir carries to a fresh machine)."""
+    counters only: what publish_dir carries to a fresh machine), and ema.pt with ema_decay."""
     st = {**state, "elapsed": state["elapsed"] + time.monotonic() - session_t0}
     meta = {"step": st["step"], "recipe": "dqn_hscl", "last_action": args.last_action, "train_args": _plain(args)}
     tmp = run_dir / "checkpoint.pt.tmp"
     torch.save({"state": st, "target": target.state_dict(), "optimizer": opt.state_dict()}, tmp)
     os.replace(tmp, run_dir / "checkpoint.pt")
     save_model(run_dir / "last.pt", net, args.network_config(), meta)
+    if ema is not None:
+        save_model(run_dir / "ema.pt", ema, args.network_config(), {**meta, "ema_decay": args.ema_decay})
     (run_dir / "state.json").write_text(json.dumps(st, indent=1))
     plot_run(run_dir)
     if args.publish_dir:
         pub = Path(args.publish_dir)
         pub.mkdir(parents=True, exist_ok=True)
-        for name in ("last.pt", "best.pt", "state.json", "config.json", "train.csv", "eval.csv", "training.png"):
+        for name in ("last.pt", "ema.pt", "best.pt", "state.json", "config.json", "train.csv", "eval.csv", "training.png"):
             if (run_dir / name).is_file():
                 data = (run_dir / name).read_bytes()
                 (pub / (name + ".tmp")).write_bytes(data)
@@ -1167,9 +1196,11 @@ def _plain(args: Args) -> dict:
     return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(args).items()}
 
 
-def _resume(run_dir: Path, publish: Path | None, net, target, opt, state: dict, ncfg: NetworkConfig) -> bool:
+def _resume(run_dir: Path, publish: Path | None, net, target, opt, state: dict, ncfg: NetworkConfig,
+            ema=None) -> bool:
     """Full resume from runs/<name>/checkpoint.pt; else weights-only from publish_dir (fresh optimizer, target =
-    online); else nothing (a new run). Returns whether it resumed."""
+    online); else nothing (a new run). With ema, its weights come from ema.pt beside last.pt when there is one
+    (state["ema_loaded"] says so). Returns whether it resumed."""
     ck = run_dir / "checkpoint.pt"
     if ck.is_file() and (run_dir / "last.pt").is_file():
         loaded, cfg, _ = load_model(run_dir / "last.pt")
@@ -1180,6 +1211,7 @@ def _resume(run_dir: Path, publish: Path | None, net, target, opt, state: dict, 
         target.load_state_dict(payload["target"])
         opt.load_state_dict(payload["optimizer"])
         state.update(payload["state"])
+        _load_ema(ema, run_dir / "ema.pt", ncfg, state)
         print(f"resumed {run_dir} at step {state['step']} (stage {state['stage']})")
         return True
     if publish is not None and (publish / "last.pt").is_file() and (publish / "state.json").is_file():
@@ -1189,12 +1221,23 @@ def _resume(run_dir: Path, publish: Path | None, net, target, opt, state: dict, 
         net.load_state_dict(loaded.state_dict())
         target.load_state_dict(loaded.state_dict())
         state.update(json.loads((publish / "state.json").read_text()))
+        _load_ema(ema, publish / "ema.pt", ncfg, state)
         for name in ("train.csv", "eval.csv", "best.pt"):
             if (publish / name).is_file() and not (run_dir / name).is_file():
                 (run_dir / name).write_bytes((publish / name).read_bytes())
         print(f"resumed weights from {publish} at step {state['step']} (fresh optimizer)")
         return True
     return False
+
+
+def _load_ema(ema, path: Path, ncfg: NetworkConfig, state: dict) -> None:
+    if ema is None or not path.is_file():
+        return
+    loaded, cfg, _ = load_model(path)
+    if cfg != ncfg:
+        raise ValueError(f"{path}: the averaged network {cfg} differs from this run's {ncfg}")
+    ema.load_state_dict(loaded.state_dict())
+    state["ema_loaded"] = True
 
 
 def plot_run(run_dir: Path) -> Path | None:
@@ -1237,6 +1280,9 @@ def plot_run(run_dir: Path) -> Path | None:
         for st in sorted(set(ev["stage"])):
             sel = ev["stage"] == st
             ax[1, 1].plot(ev["step"][sel], ev["success_rate"][sel], "o-", ms=3, lw=1, label=f"greedy validation {st}")
+            if "ema_success_rate" in ev and np.isfinite(ev["ema_success_rate"][sel]).any():
+                ax[1, 1].plot(ev["step"][sel], ev["ema_success_rate"][sel], "s--", ms=3, lw=1,
+                              label=f"greedy validation {st}, averaged weights")
     ax[1, 1].set_title("success rate"), ax[1, 1].legend(fontsize=6)
     ax[1, 2].plot(s, log["stage_index"], lw=1, label="curriculum stage (index)")
     if "blocked_share" in log and np.nansum(log["blocked_share"]) > 0:
