@@ -657,3 +657,20 @@ def test_stuck_cycles_catch_a_team_that_steps_back_and_forth():
     assert still_only["deviations"] == 0 and not still_only["success"]
     cycles = play(True)  # each repeat of (position, last action) calls it: a step up, closer to the goal
     assert cycles["deviations"] >= 1 and cycles["success"]
+
+
+def test_the_lockstep_screen_finds_exactly_the_greedy_teams_that_get_stuck():
+    from mapf_policy.train.dqn_hscl import greedy_gets_stuck
+    from mapf_world.instances import generate_instance
+
+    def env_of(seed, agents):
+        inst = generate_instance(np.random.default_rng(seed), size=10, density=0.3, n_agents=agents)
+        return MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=64, last_action="executed")
+
+    envs = [env_of(seed, 2 if seed % 5 == 0 else 4) for seed in range(30)]  # teams of two sizes in one batch
+    screened = greedy_gets_stuck(_heuristic_greedy, envs)
+    one_by_one = [play_episode(_heuristic_greedy, env, 0.0, np.random.default_rng(0), greedy_until_stuck=1,
+                               stuck_cycles=True, stuck_ends=True)[1]["fixed_point"] for env in envs]
+    assert screened.tolist() == one_by_one
+    assert 0 < screened.sum() < len(envs)  # both kinds of team are in the sample
+    assert greedy_gets_stuck(_heuristic_greedy, []).shape == (0,)

@@ -543,6 +543,36 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
                    "blocked": blocked, "deviations": deviations}
 
 
+def greedy_gets_stuck(forward, envs: list[MapfEnv]) -> np.ndarray:
+    """(len(envs),) bool: whether each fresh episode's greedy team reaches a joint state it was in before (a cycle)
+    before it ends, i.e. whether play_episode(greedy_until_stuck=1, stuck_cycles=True) would search a deviation
+    there. All teams play in lockstep, one network call a step for all of them: mining (Args.mine_episodes) screens
+    its episodes so, and plays again, one by one with the search, only those that get stuck, about one in twenty of
+    a trained policy's on 4x20. The envs are played to their end (reset them, or build new ones, to play again)."""
+    cfg = getattr(forward, "cfg", NetworkConfig())
+    obs = [env.reset()[0] for env in envs]
+    seen = [{env.joint_state()} for env in envs]
+    stuck, active = np.zeros(len(envs), dtype=bool), list(range(len(envs)))
+    while active:
+        parts = [network_inputs(obs[i], cfg) for i in active]
+        with torch.inference_mode():
+            q = forward(*(torch.cat(column) for column in zip(*parts))).numpy()
+        actions = np.split(q.argmax(axis=1), np.cumsum([envs[i].n_agents for i in active])[:-1])
+        still_active = []
+        for i, a in zip(active, actions):
+            obs[i], _, terminated, truncated, _ = envs[i].step(a)
+            state_now = envs[i].joint_state()
+            if terminated or truncated:
+                continue
+            if state_now in seen[i]:
+                stuck[i] = True
+                continue
+            seen[i].add(state_now)
+            still_active.append(i)
+        active = still_active
+    return stuck
+
+
 MAX_DEVIATION_SEARCHES = 8  # best_deviation calls an episode (each costs up to 4 N rollouts of `horizon` steps)
 
 
@@ -997,12 +1027,16 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             stats["mined_labels"] = 0
             m_agents, m_size = (parse_stage(args.mine_stage) if args.mine_stage and k == len(stages) - 1
                                 else (agents, size))
+            m_envs = []
             for _ in range(args.mine_episodes):
                 mined = generate_instance(instance_rng(args.seed, MINE_STREAM, state.get("mined", 0)), size=m_size,
                                           density=args.density, n_agents=m_agents)
                 state["mined"] = state.get("mined", 0) + 1
-                m_env = MapfEnv(mined.grid, mined.starts, mined.goals, max_steps=args.max_episode_steps,
-                                last_action=args.last_action, heading=args.heading, heading_refused=args.heading_refused)
+                m_envs.append(MapfEnv(mined.grid, mined.starts, mined.goals, max_steps=args.max_episode_steps,
+                                      last_action=args.last_action, heading=args.heading,
+                                      heading_refused=args.heading_refused))
+            # Only a team that gets stuck yields labels: screen all in one batch, search in those alone.
+            for m_env in (e for e, hit in zip(m_envs, greedy_gets_stuck(act_q, m_envs)) if hit):
                 m_steps, m_stats = play_episode(act_q, m_env, 0.0, rng, greedy_until_stuck=1,
                                                 stuck_rollout=args.stuck_rollout, stuck_cycles=True)
                 if m_stats["deviations"]:
