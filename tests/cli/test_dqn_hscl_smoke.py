@@ -13,7 +13,7 @@ from mapf_policy.model_io import load_model
 
 TINY = ["--stages", "1x6", "2x6", "--total-steps", "12", "--batch-size", "16", "--learning-starts", "40",
         "--log-every", "4", "--eval-every", "6", "--eval-cases", "2", "--expert", "shortest_path",
-        "--max-episode-steps", "32", "--no-progress"]
+        "--max-episode-steps", "32", "--resume-refill", "200", "--no-progress"]
 
 
 def _run(repo_root, tmp_path, *extra):
@@ -63,10 +63,15 @@ def test_dqn_hscl_logs_what_it_learns_and_resumes(repo_root, tmp_path):
     assert "resumed" in longer.stdout and [int(r["step"]) for r in _rows(run / "train.csv")][-1] == 16
 
     shutil.rmtree(tmp_path / "runs")  # a fresh machine: only the published folder is left
+    published = json.loads((pub / "state.json").read_text())
     fresh = _run(repo_root, tmp_path, "--run-name", "t", "--total-steps", "20", "--publish-dir", str(pub))
     assert fresh.returncode == 0, fresh.stderr[-3000:]
     assert "resumed weights from" in fresh.stdout
-    assert json.loads((pub / "state.json").read_text())["step"] == 20
+    after = json.loads((pub / "state.json").read_text())
+    assert after["step"] == 20
+    # Learning went on only once the replay held --resume-refill rows again (at most 2 agents x 32 steps an episode)
+    assert "refilling the replay to 200 rows" in fresh.stdout
+    assert after["episodes"] - published["episodes"] >= 200 // 64
 
     clash = _run(repo_root, tmp_path, "--run-name", "t", "--lr", "0.5")
     assert clash.returncode == 2 and "lr" in clash.stderr

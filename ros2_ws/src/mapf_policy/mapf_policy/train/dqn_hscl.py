@@ -174,6 +174,12 @@ class Args:
     (size * P(row))^-beta / max over the batch."""
     learning_starts: int = 2_000
     """Rows in the replay before the first gradient step."""
+    resume_refill: int = 50_000
+    """After a resume of either kind (the replay is never saved: a fresh machine has none, and it would be hundreds
+    of MB), learning waits until the replay holds this many rows again (capped at replay_capacity) instead of
+    learning_starts, so that the first steps after a resume do not fit a few thousand fresh rows (the
+    twenty-third session's resumed runs fell back by 0.03-0.14 on rung 2). A schedule setting: it may change on
+    a resume."""
     replay_ratio: float = 4.0
     """Rows drawn by the learner per row produced (sets the gradient steps after each episode)."""
     eps_start: float = 0.3
@@ -343,6 +349,7 @@ class Args:
         need(0.0 < self.tau_h < 0.2, f"tau_h must lie in (0, 0.2), got {self.tau_h}")
         need(self.lr_end >= 0, f"lr_end must be >= 0, got {self.lr_end}")
         need(0 <= self.ema_decay < 1, f"ema_decay must be in [0, 1), got {self.ema_decay}")
+        need(self.resume_refill >= 0, f"resume_refill must be >= 0, got {self.resume_refill}")
         need(0 <= self.advantage_learning < 1, f"advantage_learning must lie in [0, 1), got {self.advantage_learning}")
         need(not (self.recurrent and self.advantage_learning > 0), "advantage_learning is not implemented for recurrent")
         for name in ("lr", "grad_clip", "temperature", "replay_ratio", "huber_delta", "expert_time_limit"):
@@ -962,6 +969,9 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
         print(f"started from the weights of {args.init_model}")
     if not resumed:
         target.load_state_dict(net.state_dict())
+    starts = min(args.replay_capacity, max(args.learning_starts, args.resume_refill)) if resumed else args.learning_starts
+    if resumed and starts > args.learning_starts:
+        print(f"refilling the replay to {starts} rows before learning goes on (--resume-refill)")
     if ema is not None and not state.pop("ema_loaded", False):
         ema.load_state_dict(net.state_dict())
     truncate_log(run_dir / "train.csv", state["step"])
@@ -1048,7 +1058,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             state["episodes"] += 1
             window["rows"] += len(rows["action"])
             window["eps"].append(stats)
-            if replay.size < args.learning_starts:
+            if replay.size < starts:
                 continue
             # 2. Gradient steps: replay_ratio rows drawn per row produced.
             owed += len(rows["action"]) * args.replay_ratio / args.batch_size
@@ -1384,7 +1394,7 @@ def main(argv=None) -> int:
     saved = run_dir / "config.json"
     if saved.is_file():
         old = json.loads(saved.read_text())
-        schedule = {"total_steps", "session_minutes", "eval_every", "log_every", "checkpoint_minutes", "publish_dir", "threads"}
+        schedule = {"total_steps", "session_minutes", "resume_refill", "eval_every", "log_every", "checkpoint_minutes", "publish_dir", "threads"}
         defaults = _plain(Args())  # a field added after the run started has its default there
         differ = sorted(k for k, v in _plain(args).items() if k not in schedule and old.get(k, defaults[k]) != v)
         if differ:
