@@ -40,3 +40,24 @@ def test_bench_bf16_times_both_precisions_for_both_forwards(repo_root):
     assert all(float(a) > 0 and float(b) > 0 for _, a, b, _ in rows)
     bad = _run(repo_root, "bench_bf16", "--steps", "0")
     assert bad.returncode != 0 and "must be >= 1" in bad.stderr
+
+
+def test_bench_mining_times_both_ways_of_mining(repo_root, tmp_path):
+    import torch
+
+    from mapf_policy.config import NetworkConfig
+    from mapf_policy.model_io import save_model
+    from mapf_policy.network import QNetwork
+
+    torch.manual_seed(0)
+    cfg = NetworkConfig(dueling=True, heading=True)
+    save_model(tmp_path / "m.pt", QNetwork(cfg), cfg, {"last_action": "executed"})
+    proc = _run(repo_root, "bench_mining", str(tmp_path / "m.pt"), "--size", "8", "--episodes", "8", "--batch", "4",
+                "--horizon", "4")
+    assert proc.returncode == 0, proc.stderr
+    rows = re.findall(r"(one by one|lockstep screen) +([\d.]+) s .* played with the search: +(\d+) +labels: (\d+)",
+                      proc.stdout)
+    assert [r[0] for r in rows] == ["one by one", "lockstep screen"]
+    assert int(rows[0][2]) == 8 and int(rows[1][2]) <= 8
+    bad = _run(repo_root, "bench_mining", str(tmp_path / "missing.pt"))
+    assert bad.returncode != 0 and "missing.pt" in bad.stderr
