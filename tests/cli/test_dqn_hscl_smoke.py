@@ -97,6 +97,8 @@ def test_ladder_reports_a_rung_and_fails_an_untrained_model(repo_root, tmp_path)
         assert stuck["blocker_on_goal"] <= stuck["blockers"] and stuck["blocker_label_moves"] <= stuck["blockers"]
         assert sum(stuck["blocker_label_rank_counts"]) == stuck["blocker_label_moves"] and "pushed into" in out.stdout
         assert 0 <= stuck["blocker_moves_outweigh_stay"] <= stuck["blockers"] and "outweigh" in out.stdout
+        assert sum(stuck["period_counts"]) == stuck["failed_cases"] and "Loops at the end" in out.stdout
+        assert stuck["moving_off_goal"] <= stuck["off_goal"] and stuck["moving_on_goal"] >= 0
     missing = subprocess.run([str(repo_root / "scripts" / "ladder"), str(tmp_path / "nope.pt")], capture_output=True,
                              text=True, timeout=60)
     assert missing.returncode == 2 and "does not exist" in missing.stderr

@@ -21,3 +21,17 @@ def test_a_stay_far_ahead_or_not_the_argmax_is_not():
     assert not moves_outweigh_stay(_q(0.0, [0.1, -1.0, -1.0, -1.0]), 0.1)  # a move is the argmax
     # The temperature decides it: the same values, colder, leave the stay ahead of the moves together.
     assert not moves_outweigh_stay(_q(0.0, [-0.05, -0.05, -0.05, -0.05]), 0.01)
+
+
+def test_trajectory_period_finds_the_loop_a_team_ends_in():
+    from mapf_policy.train.ladder import trajectory_period
+
+    still = np.zeros((12, 2, 2), dtype=np.int64)  # nobody moves: a fixed point
+    assert trajectory_period(still) == 1
+    back_and_forth = np.array([[[0, k % 2], [3, 3]] for k in range(12)])  # one agent steps right, left, right...
+    assert trajectory_period(back_and_forth) == 2
+    loop = [[0, 0], [0, 1], [1, 1], [1, 0]]  # one agent round a 2x2 block, a loop of period 4
+    assert trajectory_period(np.array([[loop[k % 4]] for k in range(20)])) == 4
+    walk = np.array([[[0, k]] for k in range(20)])  # a straight walk never repeats
+    assert trajectory_period(walk) is None
+    assert trajectory_period(np.array([[loop[k % 4]] for k in range(6)])) is None  # too short to show period 4

@@ -102,7 +102,12 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
     labelled move has rank r in their Q-values (0: it is the argmax). `blocker_moves_outweigh_stay` counts the
     blockers whose four moves together carry more probability than staying under softmax(Q / T), T the training
     temperature (the policy a cross-entropy imitation learner fits), while staying is still the argmax: moving is
-    what the labels say more often, but split over directions, so no single move outranks the stay."""
+    what the labels say more often, but split over directions, so no single move outranks the stay.
+    How the team loops at the end (trajectory_period): `period_counts[p]` counts the failed cases whose positions
+    repeat with period p + 1 over the last steps (1: a fixed point, 2: agents stepping back and forth, ...; the last
+    entry: no period up to MAX_PERIOD, a team that wanders); `off_goal` the agents off their goal at the end,
+    `moving_off_goal` those of them that move within the loop, `moving_on_goal` agents on their goal at the end that
+    leave it within the loop (making way and coming back)."""
     from mapf_policy.train.expert import ExpertFailed, make_oracle
 
     net, _, meta = load_model(path)
@@ -110,7 +115,8 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
     temperature = float(meta.get("train_args", {}).get("temperature", 0.1))  # of the imitation term
     out = {"failed_cases": 0, "fixed_point": 0, "refused": 0, "refused_with_room": 0, "refused_is_argmax": 0,
            "label_is_refused_move": 0, "labelled": 0, "blockers": 0, "blocker_on_goal": 0, "blocker_label_moves": 0,
-           "blocker_label_rank": [], "blocker_moves_outweigh_stay": 0, "lead": []}
+           "blocker_label_rank": [], "blocker_moves_outweigh_stay": 0, "lead": [],
+           "period_counts": [0] * (MAX_PERIOD + 1), "off_goal": 0, "moving_off_goal": 0, "moving_on_goal": 0}
     for inst in generated_cases(seed, COMPARE_STREAM, [agents], cases, side, density):
         env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode, heading=net.cfg.heading,
                       heading_refused=net.cfg.heading_refused)
@@ -120,6 +126,15 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
         out["failed_cases"] += 1
         trail = np.stack([o["position"] for o in steps["obs"][-11:]])
         out["fixed_point"] += int((trail == trail[-1]).all())
+        positions = np.stack([o["position"] for o in steps["obs"]]).astype(np.int64)
+        period = trajectory_period(positions)
+        out["period_counts"][(period or MAX_PERIOD + 1) - 1] += 1
+        window = positions[-(period or MAX_PERIOD) - 1:]
+        moving = (window != window[-1]).any(axis=(0, 2))  # (N,) an agent that moves within the loop
+        home = (positions[-1] == env.goals).all(axis=1)
+        out["off_goal"] += int((~home).sum())
+        out["moving_off_goal"] += int((moving & ~home).sum())
+        out["moving_on_goal"] += int((moving & home).sum())
         obs, action, refused = steps["obs"][-2], steps["action"][-1], steps["failed"][-1]
         if isinstance(forward, RecurrentActor):  # its last call was at obs, with the memory it had then
             q = forward.q.numpy()
@@ -154,6 +169,21 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
     ranks = out.pop("blocker_label_rank")
     out["blocker_label_rank_counts"] = [ranks.count(r) for r in range(5)]  # how often the label is 1st, 2nd, ...
     return out
+
+
+MAX_PERIOD = 32  # the longest loop trajectory_period looks for
+
+
+def trajectory_period(positions: np.ndarray, max_period: int = MAX_PERIOD) -> int | None:
+    """The smallest p <= max_period with which the joint positions (T + 1, N, 2) repeat over their last 2 p + 1 steps
+    (positions[t] == positions[t - p] for the last p + 1 steps t), or None: a deterministic team in a joint loop
+    repeats its positions too, one that wanders does not."""
+    for p in range(1, max_period + 1):
+        if len(positions) < 2 * p + 1:
+            return None
+        if (positions[-p - 1:] == positions[-2 * p - 1:-p]).all():
+            return p
+    return None
 
 
 def markdown(model: str, rows: list[dict]) -> str:
@@ -214,7 +244,10 @@ def main(argv=None) -> int:
                       f"({rep['blocker_on_goal']} on their goal); ODrM* moves {rep['blocker_label_moves']} of them, its "
                       f"move ranked 1st..5th in their Q-values {rep['blocker_label_rank_counts']} times; "
                       f"{rep['blocker_moves_outweigh_stay']} of them stay although their four moves together outweigh "
-                      f"the stay under softmax(Q / T)")
+                      f"the stay under softmax(Q / T). Loops at the end by period 1..{MAX_PERIOD}, then none: "
+                      f"{ {(p + 1 if p < MAX_PERIOD else 'none'): c for p, c in enumerate(rep['period_counts']) if c} }; {rep['off_goal']} agents "
+                      f"off their goal, {rep['moving_off_goal']} of them moving in the loop; {rep['moving_on_goal']} "
+                      f"agents on their goal leave it within the loop")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0 if all(r["passed"] for r in rows) else 1
