@@ -580,6 +580,25 @@ def greedy_gets_stuck(forward, envs: list[MapfEnv]) -> np.ndarray:
     return stuck
 
 
+def mining_envs(seed: int, first: int, count: int, agents: int, size: int, density: float, max_steps: int,
+                last_action: str, heading: bool, heading_refused: bool) -> list[MapfEnv]:
+    """Episodes first .. first + count - 1 of the mining seed stream (MINE_STREAM), as fresh environments."""
+    envs = []
+    for e in range(first, first + count):
+        inst = generate_instance(instance_rng(seed, MINE_STREAM, e), size=size, density=density, n_agents=agents)
+        envs.append(MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=last_action,
+                            heading=heading, heading_refused=heading_refused))
+    return envs
+
+
+def mine(forward, envs: list[MapfEnv], horizon: int, rng) -> list[tuple[dict, dict]]:
+    """Mining (Args.mine_episodes): (steps, stats) of play_episode, greedy with the rollout search of `horizon` steps
+    wherever the team loops, for the envs whose teams get stuck at all; the others, screened in lockstep by
+    greedy_gets_stuck, can yield no label and are not played again."""
+    return [play_episode(forward, env, 0.0, rng, greedy_until_stuck=1, stuck_rollout=horizon, stuck_cycles=True)
+            for env, hit in zip(envs, greedy_gets_stuck(forward, envs)) if hit]
+
+
 MAX_DEVIATION_SEARCHES = 8  # best_deviation calls an episode (each costs up to 4 N rollouts of `horizon` steps)
 
 
@@ -960,7 +979,8 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     state = {"step": 0, "stage": 0, "episodes": 0, "elapsed": 0.0, "hscl_weight": args.hscl_weight}
     ema = QNetwork(ncfg).to(memory_format=torch.channels_last) if args.ema_decay > 0 else None
-    resumed = _resume(run_dir, Path(args.publish_dir) if args.publish_dir else None, net, target, opt, state, ncfg, ema)
+    source = _resume(run_dir, Path(args.publish_dir) if args.publish_dir else None, net, target, opt, state, ncfg)
+    resumed = source is not None
     if not resumed and args.init_model:
         loaded, cfg, _ = load_model(args.init_model)
         if cfg != ncfg:
@@ -972,8 +992,9 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
     starts = min(args.replay_capacity, max(args.learning_starts, args.resume_refill)) if resumed else args.learning_starts
     if resumed and starts > args.learning_starts:
         print(f"refilling the replay to {starts} rows before learning goes on (--resume-refill)")
-    if ema is not None and not state.pop("ema_loaded", False):
-        ema.load_state_dict(net.state_dict())
+    if ema is not None:  # the averaged weights saved beside the resumed ones, else a copy of the online weights
+        ema.load_state_dict(_load_ema(source / "ema.pt", ncfg) if resumed and (source / "ema.pt").is_file()
+                            else net.state_dict())
     truncate_log(run_dir / "train.csv", state["step"])
     truncate_log(run_dir / "eval.csv", state["step"])
     add_log_columns(run_dir / "train.csv", TRAIN_COLUMNS)
@@ -1037,18 +1058,10 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             stats["mined_labels"] = 0
             m_agents, m_size = (parse_stage(args.mine_stage) if args.mine_stage and k == len(stages) - 1
                                 else (agents, size))
-            m_envs = []
-            for _ in range(args.mine_episodes):
-                mined = generate_instance(instance_rng(args.seed, MINE_STREAM, state.get("mined", 0)), size=m_size,
-                                          density=args.density, n_agents=m_agents)
-                state["mined"] = state.get("mined", 0) + 1
-                m_envs.append(MapfEnv(mined.grid, mined.starts, mined.goals, max_steps=args.max_episode_steps,
-                                      last_action=args.last_action, heading=args.heading,
-                                      heading_refused=args.heading_refused))
-            # Only a team that gets stuck yields labels: screen all in one batch, search in those alone.
-            for m_env in (e for e, hit in zip(m_envs, greedy_gets_stuck(act_q, m_envs)) if hit):
-                m_steps, m_stats = play_episode(act_q, m_env, 0.0, rng, greedy_until_stuck=1,
-                                                stuck_rollout=args.stuck_rollout, stuck_cycles=True)
+            m_envs = mining_envs(args.seed, state.get("mined", 0), args.mine_episodes, m_agents, m_size, args.density,
+                                 args.max_episode_steps, args.last_action, args.heading, args.heading_refused)
+            state["mined"] = state.get("mined", 0) + args.mine_episodes
+            for m_steps, m_stats in mine(act_q, m_envs, args.stuck_rollout, rng):
                 if m_stats["deviations"]:
                     m_rows = episode_rows(m_steps, m_stats["success"], args.gamma, args.n_step, False,
                                           STILL_KEYS[args.still_count], episode=state["episodes"])
@@ -1125,7 +1138,8 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                 opt.step()
                 if ema is not None:
                     with torch.no_grad():
-                        torch._foreach_lerp_(ema_params, params, 1.0 - args.ema_decay)
+                        for averaged, p in zip(ema_params, params):
+                            averaged.lerp_(p, 1.0 - args.ema_decay)
                 replay.update_priorities(batch["index"][:n_main], td[:n_main])  # mined rows (last) keep none
                 window["steps"] += 1
                 bar.update(1)
@@ -1240,11 +1254,9 @@ def _plain(args: Args) -> dict:
     return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(args).items()}
 
 
-def _resume(run_dir: Path, publish: Path | None, net, target, opt, state: dict, ncfg: NetworkConfig,
-            ema=None) -> bool:
+def _resume(run_dir: Path, publish: Path | None, net, target, opt, state: dict, ncfg: NetworkConfig) -> Path | None:
     """Full resume from runs/<name>/checkpoint.pt; else weights-only from publish_dir (fresh optimizer, target =
-    online); else nothing (a new run). With ema, its weights come from ema.pt beside last.pt when there is one
-    (state["ema_loaded"] says so). Returns whether it resumed."""
+    online); else nothing (a new run). Returns the folder it resumed from (run_dir or publish), or None."""
     ck = run_dir / "checkpoint.pt"
     if ck.is_file() and (run_dir / "last.pt").is_file():
         loaded, cfg, _ = load_model(run_dir / "last.pt")
@@ -1255,9 +1267,8 @@ def _resume(run_dir: Path, publish: Path | None, net, target, opt, state: dict, 
         target.load_state_dict(payload["target"])
         opt.load_state_dict(payload["optimizer"])
         state.update(payload["state"])
-        _load_ema(ema, run_dir / "ema.pt", ncfg, state)
         print(f"resumed {run_dir} at step {state['step']} (stage {state['stage']})")
-        return True
+        return run_dir
     if publish is not None and (publish / "last.pt").is_file() and (publish / "state.json").is_file():
         loaded, cfg, _ = load_model(publish / "last.pt")
         if cfg != ncfg:
@@ -1265,23 +1276,20 @@ def _resume(run_dir: Path, publish: Path | None, net, target, opt, state: dict, 
         net.load_state_dict(loaded.state_dict())
         target.load_state_dict(loaded.state_dict())
         state.update(json.loads((publish / "state.json").read_text()))
-        _load_ema(ema, publish / "ema.pt", ncfg, state)
         for name in ("train.csv", "eval.csv", "best.pt"):
             if (publish / name).is_file() and not (run_dir / name).is_file():
                 (run_dir / name).write_bytes((publish / name).read_bytes())
         print(f"resumed weights from {publish} at step {state['step']} (fresh optimizer)")
-        return True
-    return False
+        return publish
+    return None
 
 
-def _load_ema(ema, path: Path, ncfg: NetworkConfig, state: dict) -> None:
-    if ema is None or not path.is_file():
-        return
+def _load_ema(path: Path, ncfg: NetworkConfig) -> dict:
+    """The state dict of averaged weights saved at `path` (Args.ema_decay), refused if its network is not ncfg."""
     loaded, cfg, _ = load_model(path)
     if cfg != ncfg:
         raise ValueError(f"{path}: the averaged network {cfg} differs from this run's {ncfg}")
-    ema.load_state_dict(loaded.state_dict())
-    state["ema_loaded"] = True
+    return loaded.state_dict()
 
 
 def plot_run(run_dir: Path) -> Path | None:
