@@ -312,3 +312,37 @@ def test_env_rejects_bad_actions_and_options():
         MapfEnv(RING, [[0, 0]], [[0, 2]], max_steps=0)
     with pytest.raises(ValueError, match="fov_size"):
         MapfEnv(RING, [[0, 0]], [[0, 2]], fov_size=4)
+
+
+@pytest.mark.parametrize("heading", [False, True])
+def test_deep_copy_plays_on_alone_and_shares_the_fixed_parts(heading):
+    """copy.deepcopy(env) (the rollout search's copies): the copy and the original step apart, each as a fresh env
+    replaying its own actions would; the map, distance maps and observation builder are shared, not copied. (A plain
+    deep copy of the builder made its agent windows a frozen copy instead of a view of its scratch map: the copy's
+    observations showed no other agents.)"""
+    import copy
+
+    rng = np.random.default_rng(7)
+    grid, starts, goals = random_case(rng, 12, 15, 5)
+    make = lambda: MapfEnv(grid, starts, goals, last_action="executed", heading=heading)  # noqa: E731
+    env = make()
+    env.reset()
+    head = [rng.integers(0, 5, 5) for _ in range(6)]
+    for a in head:
+        env.step(a)
+    twin = copy.deepcopy(env)
+    tails = {id(env): [rng.integers(0, 5, 5) for _ in range(8)], id(twin): [rng.integers(0, 5, 5) for _ in range(8)]}
+    # interleaved, so a shared scratch map or state would show up in the other env's observations
+    for a, b in zip(tails[id(env)], tails[id(twin)]):
+        got_env, got_twin = env.step(a), twin.step(b)
+    for played, got in ((tails[id(env)], got_env), (tails[id(twin)], got_twin)):
+        ref = make()
+        ref.reset()
+        for a in head + played:
+            want = ref.step(a)
+        for key in ("fov", "last_action", "position"):
+            np.testing.assert_array_equal(got[0][key], want[0][key])
+        np.testing.assert_array_equal(got[1], want[1])
+    assert env.step_count == twin.step_count == 14
+    assert twin.observation_builder is env.observation_builder and twin.dist is env.dist and twin.grid is env.grid
+    assert not np.array_equal(env.positions, twin.positions) or not np.array_equal(env.last_actions, twin.last_actions)

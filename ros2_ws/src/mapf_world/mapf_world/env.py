@@ -24,6 +24,8 @@ other agents face, each one's cell plus its last requested move (ObservationBuil
 """
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from mapf_world.grid import STAY, check_actions
@@ -68,6 +70,21 @@ class MapfEnv:
         self._contact_run = np.zeros(len(self._starts), dtype=np.int64)
         self._step = 0
         self._done = True  # until reset()
+
+    # The instance's fixed parts, built once and never written after: a copy of the env shares them.
+    _SHARED = ("_grid", "_starts", "_goals", "_dist", "_builder")
+
+    def __deepcopy__(self, memo):
+        """A copy that plays on independently of this env: the per-step state is copied, the fixed parts (map,
+        starts, goals, distance maps, observation builder) are shared. A deep copy of the builder's strided
+        window views cost about 4 ms per copy at 16 agents on 40x40, and the rollout search
+        (dqn_hscl.best_deviation) copies an episode for every candidate deviation. The builder's scratch map is
+        written and cleared within each build, so copies stepped one after another in one thread may share it."""
+        new = object.__new__(type(self))
+        memo[id(self)] = new
+        for name, value in self.__dict__.items():
+            new.__dict__[name] = value if name in self._SHARED else copy.deepcopy(value, memo)
+        return new
 
     # --- read-only views of the state -----------------------------------------------------------
     @property
