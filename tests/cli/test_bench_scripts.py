@@ -55,9 +55,11 @@ def test_bench_mining_times_both_ways_of_mining(repo_root, tmp_path):
     proc = _run(repo_root, "bench_mining", str(tmp_path / "m.pt"), "--size", "8", "--episodes", "8", "--batch", "4",
                 "--horizon", "4")
     assert proc.returncode == 0, proc.stderr
-    rows = re.findall(r"(one by one|lockstep screen) +([\d.]+) s .* played with the search: +(\d+) +labels: (\d+)",
-                      proc.stdout)
+    rows = re.findall(r"(one by one|lockstep screen) +([\d.]+) s .* played with the search: +(\d+) +labels: (\d+) +"
+                      r"solved with them: (\d+)", proc.stdout)
     assert [r[0] for r in rows] == ["one by one", "lockstep screen"]
     assert int(rows[0][2]) == 8 and int(rows[1][2]) <= 8
+    assert rows[0][3:] == rows[1][3:]  # the screen changes which episodes are searched, not the labels
+    assert all(int(r[4]) <= min(int(r[2]), int(r[3])) for r in rows)
     bad = _run(repo_root, "bench_mining", str(tmp_path / "missing.pt"))
     assert bad.returncode != 0 and "missing.pt" in bad.stderr
