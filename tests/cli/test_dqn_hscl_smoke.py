@@ -151,6 +151,19 @@ def test_a_heading_run_stores_seven_channels_and_the_ladder_plays_it_with_them(r
     assert out.returncode == (0 if rows[0]["passed"] else 1) and rows[0]["cases"] == 3, out.stderr[-2000:]
 
 
+def test_a_priority_run_stores_its_channel_and_mining_and_the_ladder_play_it(repo_root, tmp_path):
+    run = _run(repo_root, tmp_path, "--run-name", "p", "--priority", "--heading", "--greedy-fraction", "0.5",
+               "--stuck-steps", "1", "--stuck-cycles", "--stuck-rollout", "4", "--mine-episodes", "1")
+    assert run.returncode == 0, run.stderr[-3000:]
+    _, cfg, meta = load_model(tmp_path / "runs" / "p" / "last.pt")
+    assert cfg.priority and cfg.heading and cfg.fov_channels == 8 and meta["train_args"]["priority"] is True
+    out = subprocess.run([str(repo_root / "scripts" / "ladder"), str(tmp_path / "runs" / "p" / "last.pt"), "--rung", "1",
+                          "--cases", "3", "--json", str(tmp_path / "p.json"), "--stuck", "--no-progress"],
+                         capture_output=True, text=True, timeout=120)
+    rows = json.loads((tmp_path / "p.json").read_text())
+    assert out.returncode == (0 if rows[0]["passed"] else 1) and rows[0]["cases"] == 3, out.stderr[-2000:]
+
+
 @pytest.mark.slow
 def test_a_run_can_start_from_another_runs_weights_of_the_same_network(repo_root, tmp_path):
     first = _run(repo_root, tmp_path, "--run-name", "a", "--total-steps", "4")

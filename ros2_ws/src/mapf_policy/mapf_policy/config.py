@@ -103,11 +103,16 @@ class NetworkConfig:
     """Beyond the paper, with `heading`: the channel marks only the cells that other agents' refused moves tried to
     enter (MapfEnv(heading_refused=True)). The requested heading of a neighbour that has just stepped up beside an
     agent marks the agent's cell just as a refused push does; this one marks the push alone. False: every move."""
+    priority: bool = False
+    """Beyond the paper: one more fov channel after the heading channel (if any), the cells of the other agents ahead
+    of this one in the instance's agent order (MapfEnv(priority=True)). Two agents in a head-on see mirror images
+    and the joint expert's labels tell both to push (issue 20, finding 3); the expert settles who gives way by this
+    order, which a ground station can show every robot. False: not (every earlier model)."""
 
     @property
     def fov_channels(self) -> int:
-        """Channels of the fov the network reads: the paper's six, plus the heading channel if any."""
-        return self.in_channels + int(self.heading)
+        """Channels of the fov the network reads: the paper's six, plus the heading and priority channels if any."""
+        return self.in_channels + int(self.heading) + int(self.priority)
 
     def validate(self) -> None:
         if self.fov_size < 9 or self.fov_size % 2 == 0:

@@ -132,6 +132,8 @@ def read_export(path) -> tuple[dict, dict]:
         raise ValueError(f"{path}: a recurrent network (NetworkConfig.recurrent); this runtime is feed-forward")
     if cfg.heading:
         raise ValueError(f"{path}: a network with the heading channel (NetworkConfig.heading); this runtime reads six")
+    if cfg.priority:
+        raise ValueError(f"{path}: a network with the priority channel (NetworkConfig.priority); this runtime reads six")
     check_weights(arrays, cfg, str(path))
     if weights_fingerprint(arrays) != header["weights_sha256"]:
         raise ValueError(f"{path}: the weights do not match the fingerprint written at export: the file is damaged "

@@ -21,6 +21,8 @@ set changed or is empty). An agent can count all three from its own requests, po
 `heading=True` (beyond the paper; off everywhere by default) appends a seventh fov channel: the cells the
 other agents face, each one's cell plus its last requested move (ObservationBuilder.headings); with
 `heading_refused=True` as well, only the moves that were refused (the cells another agent tried and failed to enter).
+`priority=True` (beyond the paper; off by default) appends one more channel after those: the other agents ahead of
+this one in the instance's agent order (ObservationBuilder.priorities).
 """
 from __future__ import annotations
 
@@ -46,7 +48,7 @@ class MapfEnv:
     """One instance (map, starts, goals). Arrays follow docs/ARCHITECTURE.md: cells are (row, col)."""
 
     def __init__(self, grid, starts, goals, fov_size: int = 9, max_steps: int = 256, last_action: str = "requested",
-                 heading: bool = False, heading_refused: bool = False):
+                 heading: bool = False, heading_refused: bool = False, priority: bool = False):
         # Cells on the map, free, distinct, goals reachable (cheap component labels; the BFS waits for reset()).
         self._grid, self._starts, self._goals = check_instance(grid, starts, goals)
         if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
@@ -58,6 +60,7 @@ class MapfEnv:
         self.last_action_mode = last_action
         self.heading = bool(heading)
         self.heading_refused = bool(heading_refused)
+        self.priority = bool(priority)
         if self.heading_refused and not self.heading:
             raise ValueError("heading_refused=True needs heading=True (it says what the heading channel marks)")
         self._dist: np.ndarray | None = None
@@ -147,6 +150,8 @@ class MapfEnv:
                 self._positions, np.where(self._refused_run > 0, self._requested, STAY) if self.heading_refused
                 else self._requested)
             obs["fov"] = np.concatenate([obs["fov"], facing[:, None]], axis=1)
+        if self.priority:
+            obs["fov"] = np.concatenate([obs["fov"], self.observation_builder.priorities(self._positions)[:, None]], axis=1)
         return obs | {
             "still": self._still.copy(), "refused_run": self._refused_run.copy(), "contact_run": self._contact_run.copy()}
 

@@ -14,6 +14,11 @@ map), 1 where at least one other agent faces that cell. A differential-drive rob
 asks for, so a motion-capture ground station sees this without any robot telling another; a parked agent that
 a neighbour keeps pushing into sees its own cell marked.
 
+Beyond the paper, optional (`priorities`, MapfEnv(priority=True) appends it after the heading channel, if any):
+1 at the cells of the other agents that come before this one in the instance's agent order (lower index). The
+expert (ODrM*, agents taken in index order) settles ties over who gives way by that order; a fleet's ground
+station knows each robot's number, so the order is observable without any robot telling another.
+
 Everything that depends only on the map and the goals is precomputed once, padded by l // 2, so a
 step only gathers windows: row r, col c of the map is row r + l//2, col c + l//2 of the padded
 arrays, and the window of an agent at (r, c) starts at padded (r, c).
@@ -133,6 +138,16 @@ class ObservationBuilder:
         out = sliding_window_view(counts, (self.fov_size, self.fov_size))[pos[:, 0], pos[:, 1]].copy()
         out[on_map, r + DELTAS[acts[on_map], 0], r + DELTAS[acts[on_map], 1]] -= 1.0  # not one's own
         return np.minimum(out, 1.0)
+
+    def priorities(self, positions) -> np.ndarray:
+        """(N, l, l) float32: in each agent's window, 1 at the cells of the agents with a lower index (ahead of it in
+        the instance's order); its own cell and the cells of agents behind it are 0."""
+        pos = self._check_positions(positions)
+        r = self._radius
+        ids = np.zeros(self._obstacles.shape, dtype=np.int64)  # padded map of agent index + 1 (0: no agent)
+        ids[r + pos[:, 0], r + pos[:, 1]] = self._rows + 1
+        windows = sliding_window_view(ids, (self.fov_size, self.fov_size))[pos[:, 0], pos[:, 1]]  # (N, l, l)
+        return ((windows > 0) & (windows <= self._rows[:, None, None])).astype(np.float32)
 
     def build_one(self, i: int, positions, last_action) -> dict:
         """Observation of agent i alone (no batch dimension); positions are all agents' cells."""

@@ -88,6 +88,9 @@ class Args:
     heading_refused: bool = False
     """Beyond the paper, with `heading`: the channel marks only the cells that other agents' refused moves tried to
     enter (NetworkConfig.heading_refused): a pushed blocker sees the push, not a neighbour that just arrived."""
+    priority: bool = False
+    """Beyond the paper: one more fov channel, the other agents ahead of this one in the instance's agent order, the
+    order in which the expert settles who gives way (NetworkConfig.priority, MapfEnv(priority=True))."""
     recurrent: bool = False
     """Beyond the paper (DHC's design): a GRU memory per agent (NetworkConfig.recurrent), trained on sequences of
     `sequence_length` steps of one agent, each started from the memory its actor had there (R2D2's stored state).
@@ -370,7 +373,8 @@ class Args:
     def network_config(self) -> NetworkConfig:
         return NetworkConfig(dueling=self.dueling, still_bins=self.still_bins, still_count=self.still_count,
                              recurrent=self.recurrent, heading=self.heading,
-                             heading_refused=self.heading_refused, **ABLATIONS.get(self.variant, {}))
+                             heading_refused=self.heading_refused, priority=self.priority,
+                             **ABLATIONS.get(self.variant, {}))
 
 
 def learning_rate(args: Args, step: int) -> float:
@@ -581,13 +585,14 @@ def greedy_gets_stuck(forward, envs: list[MapfEnv]) -> np.ndarray:
 
 
 def mining_envs(seed: int, first: int, count: int, agents: int, size: int, density: float, max_steps: int,
-                last_action: str, heading: bool, heading_refused: bool) -> list[MapfEnv]:
-    """Episodes first .. first + count - 1 of the mining seed stream (MINE_STREAM), as fresh environments."""
+                last_action: str, cfg: NetworkConfig) -> list[MapfEnv]:
+    """Episodes first .. first + count - 1 of the mining seed stream (MINE_STREAM), as fresh environments with the
+    observation channels network `cfg` reads."""
     envs = []
     for e in range(first, first + count):
         inst = generate_instance(instance_rng(seed, MINE_STREAM, e), size=size, density=density, n_agents=agents)
         envs.append(MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=last_action,
-                            heading=heading, heading_refused=heading_refused))
+                            heading=cfg.heading, heading_refused=cfg.heading_refused, priority=cfg.priority))
     return envs
 
 
@@ -944,7 +949,7 @@ def greedy_outcomes(forward, cases, last_action: str, max_steps: int, epsilon: f
     for k, inst in enumerate(cases):
         cfg = getattr(forward, "cfg", NetworkConfig())
         env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=last_action,
-                      heading=cfg.heading, heading_refused=cfg.heading_refused)
+                      heading=cfg.heading, heading_refused=cfg.heading_refused, priority=cfg.priority)
         _, stats = play_episode(forward, env, epsilon, np.random.default_rng(k if epsilon > 0 else 0))
         outcomes.append((stats["success"], stats["steps"] if stats["success"] else max_steps))
     return outcomes
@@ -1026,8 +1031,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             ep_rng = instance_rng(args.seed, ACTOR_STREAM, state["episodes"])
             inst = generate_instance(ep_rng, size=size, density=args.density, n_agents=agents)
             env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=args.max_episode_steps, last_action=args.last_action,
-                          heading=args.heading,
-                          heading_refused=args.heading_refused)
+                          heading=args.heading, heading_refused=args.heading_refused, priority=args.priority)
             drive = ep_rng.random() < args.expert_drive_fraction
             relabel = drive or ep_rng.random() < args.relabel_fraction
             greedy = not drive and ep_rng.random() < args.greedy_fraction
@@ -1059,7 +1063,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             m_agents, m_size = (parse_stage(args.mine_stage) if args.mine_stage and k == len(stages) - 1
                                 else (agents, size))
             m_envs = mining_envs(args.seed, state.get("mined", 0), args.mine_episodes, m_agents, m_size, args.density,
-                                 args.max_episode_steps, args.last_action, args.heading, args.heading_refused)
+                                 args.max_episode_steps, args.last_action, ncfg)
             state["mined"] = state.get("mined", 0) + args.mine_episodes
             for m_steps, m_stats in mine(act_q, m_envs, args.stuck_rollout, rng):
                 if m_stats["deviations"]:

@@ -119,7 +119,7 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
            "period_counts": [0] * (MAX_PERIOD + 1), "off_goal": 0, "moving_off_goal": 0, "moving_on_goal": 0}
     for inst in generated_cases(seed, COMPARE_STREAM, [agents], cases, side, density):
         env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode, heading=net.cfg.heading,
-                      heading_refused=net.cfg.heading_refused)
+                      heading_refused=net.cfg.heading_refused, priority=net.cfg.priority)
         steps, stats = play_episode(forward, env, 0.0, np.random.default_rng(0))
         if stats["success"]:
             continue
