@@ -346,3 +346,18 @@ def test_deep_copy_plays_on_alone_and_shares_the_fixed_parts(heading):
     assert env.step_count == twin.step_count == 14
     assert twin.observation_builder is env.observation_builder and twin.dist is env.dist and twin.grid is env.grid
     assert not np.array_equal(env.positions, twin.positions) or not np.array_equal(env.last_actions, twin.last_actions)
+
+
+def test_a_deep_copy_of_the_builder_sees_the_agents():
+    """ObservationBuilder's own deep copy: its windows look at its own maps (a plain deep copy froze them, and its
+    agent channel stayed empty)."""
+    import copy
+
+    rng = np.random.default_rng(3)
+    grid, starts, goals = random_case(rng, 11, 13, 4)
+    builder = ObservationBuilder(grid, goals)
+    twin = copy.deepcopy(builder)
+    assert twin._agents is not builder._agents
+    for key in ("fov", "last_action", "position"):
+        np.testing.assert_array_equal(twin.build(starts, [STAY] * 4)[key], builder.build(starts, [STAY] * 4)[key])
+    assert builder.build(starts, [STAY] * 4)["fov"][:, 1].any()  # the case has agents in each other's view

@@ -25,6 +25,8 @@ arrays, and the window of an agent at (r, c) starts at padded (r, c).
 """
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
@@ -78,12 +80,27 @@ class ObservationBuilder:
         )
         # Scratch map of agent cells: marked and cleared again inside each build (one builder per thread).
         self._agents = np.zeros_like(self._obstacles)
+        self._rows = np.arange(self.n_agents)
+        self._view_windows()
+
+    def _view_windows(self) -> None:
+        """Windows as strided views of the padded maps: [row, col] of these is the l x l window of an agent at
+        (row, col). A view must look at this builder's own maps: the agent windows see what each build marks."""
         win = (self.fov_size, self.fov_size)
-        # Windows as strided views: [row, col] of these is the l x l window of an agent at (row, col).
         self._obstacle_windows = sliding_window_view(self._obstacles, win)
         self._heuristic_windows = sliding_window_view(self._heuristic, win, axis=(2, 3))
         self._agent_windows = sliding_window_view(self._agents, win)
-        self._rows = np.arange(self.n_agents)
+
+    def __deepcopy__(self, memo):
+        """The maps copied and the windows made anew over the copies. numpy deep-copies a strided view as a new,
+        frozen array: a plain deep copy's agent windows never saw its marks, and it showed no other agent."""
+        new = object.__new__(type(self))
+        memo[id(self)] = new
+        for name, value in self.__dict__.items():
+            if not name.endswith("_windows"):
+                new.__dict__[name] = copy.deepcopy(value, memo)
+        new._view_windows()
+        return new
 
     def _check_positions(self, positions) -> np.ndarray:
         pos = np.asarray(positions)
