@@ -99,6 +99,8 @@ def test_ladder_reports_a_rung_and_fails_an_untrained_model(repo_root, tmp_path)
         assert 0 <= stuck["blocker_moves_outweigh_stay"] <= stuck["blockers"] and "outweigh" in out.stdout
         assert sum(stuck["period_counts"]) == stuck["failed_cases"] and "Loops at the end" in out.stdout
         assert stuck["moving_off_goal"] <= stuck["off_goal"] and stuck["moving_on_goal"] >= 0
+        assert stuck["loops"] == sum(stuck["period_counts"][:-1]) and stuck["loops_expert_leaves"] <= stuck["loops"]
+        assert 0 <= stuck["loop_argmax_is_label"] <= stuck["loop_agent_steps"] and "expert's label at" in out.stdout
     missing = subprocess.run([str(repo_root / "scripts" / "ladder"), str(tmp_path / "nope.pt")], capture_output=True,
                              text=True, timeout=60)
     assert missing.returncode == 2 and "does not exist" in missing.stderr
@@ -260,3 +262,22 @@ def test_averaged_weights_are_validated_saved_published_and_resumed(repo_root, t
     assert all(torch.equal(a, b) for a, b in zip(ema.parameters(), again.parameters()))
     bad = _run(repo_root, tmp_path, "--run-name", "ema2", "--ema-decay", "1.0")
     assert bad.returncode == 2 and "ema_decay" in bad.stderr
+
+
+def test_a_prioritized_expert_run_logs_the_share_of_states_it_labelled(repo_root, tmp_path):
+    run = _run(repo_root, tmp_path, "--run-name", "pp", "--priority", "--expert", "prioritized")
+    assert run.returncode == 0, run.stderr[-3000:]
+    shares = [float(r["pp_label_share"]) for r in _rows(tmp_path / "runs" / "pp" / "train.csv")]
+    assert shares and all(0.0 <= s <= 1.0 for s in shares) and max(shares) > 0.0
+    bad = _run(repo_root, tmp_path, "--run-name", "pp2", "--expert", "prioritized", "--expert-order", "position")
+    assert bad.returncode == 2 and "index order" in bad.stderr
+
+
+def test_rollouts_that_deviate_only_yielding_agents_need_the_priority_channel(repo_root, tmp_path):
+    bad = _run(repo_root, tmp_path, "--run-name", "y0", "--greedy-fraction", "1", "--stuck-steps", "1",
+               "--stuck-cycles", "--stuck-rollout", "4", "--rollout-yielding")
+    assert bad.returncode == 2 and "rollout_yielding needs" in bad.stderr
+    run = _run(repo_root, tmp_path, "--run-name", "y", "--priority", "--greedy-fraction", "1", "--stuck-steps", "1",
+               "--stuck-cycles", "--stuck-rollout", "4", "--mine-episodes", "1", "--rollout-yielding")
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert json.loads((tmp_path / "runs" / "y" / "config.json").read_text())["rollout_yielding"] is True

@@ -674,3 +674,25 @@ def test_the_lockstep_screen_finds_exactly_the_greedy_teams_that_get_stuck():
     assert screened.tolist() == one_by_one
     assert 0 < screened.sum() < len(envs)  # both kinds of team are in the sample
     assert greedy_gets_stuck(_heuristic_greedy, []).shape == (0,)
+
+
+def test_yielding_agents_are_those_that_see_an_earlier_agent():
+    from mapf_policy.train.dqn_hscl import yielding_agents
+
+    pos = np.array([[0, 0], [0, 4], [0, 9], [9, 9]])
+    # agent 1 sees agent 0 (distance 4); agent 2 sees agent 1 (5 away: no) -> no; agent 3 sees nobody earlier nearby
+    assert yielding_agents(pos, 4).tolist() == [False, True, False, False]
+    assert yielding_agents(pos, 5).tolist() == [False, True, True, False]
+
+
+def test_best_deviation_with_yielding_moves_only_the_agent_that_sees_an_earlier_one():
+    from mapf_policy.train.dqn_hscl import best_deviation
+    from mapf_world.grid import RIGHT, STAY
+    # As above with the indices swapped: agent 0 is parked on its goal, agent 1 pushes into it.
+    env = MapfEnv(np.zeros((3, 5), np.uint8), np.array([[1, 2], [1, 1]]), np.array([[1, 2], [1, 4]]),
+                  last_action="executed")
+    env.reset()
+    free = best_deviation(_heuristic_greedy, env, np.array([STAY, RIGHT]), 20, 2)
+    yielded = best_deviation(_heuristic_greedy, env, np.array([STAY, RIGHT]), 20, 2, yielding=True)
+    assert free is not None and free[0] == 0  # unrestricted, the parked agent steps aside (solved soonest)
+    assert yielded is not None and yielded[0] == 1  # the later agent goes round instead

@@ -246,6 +246,11 @@ class Args:
     stage are played at this AGENTSxSIZE instead (e.g. 8x20 while training 4x20): a crowd gets stuck more often, so
     each mining episode yields more rollout labels of the conflicts a smaller team meets more rarely. "": the
     episode's own stage."""
+    rollout_yielding: bool = False
+    """Beyond the paper, with stuck_rollout and priority: the rollout search deviates only agents that see an earlier
+    agent (a lower index, marked in the priority channel) within the field of view, the ones that the index order says
+    make way; all agents where no agent sees an earlier one. So the mined labels follow the visible give-way rule
+    that the prioritized expert's labels follow too."""
     stuck_cycles: bool = False
     """Beyond the paper: a greedy actor team is stuck (stuck_steps' exploration, stuck_rescue, stuck_rollout) where its
     joint state (positions, executed and requested last actions: what every observation is built from) repeats one
@@ -258,7 +263,9 @@ class Args:
     the imitation term, whatever its label. Such rows are about 1-3 % of the replay, and a greedy team's fixed points
     turn on them. 1: every labelled row alike."""
     expert: str = "odrmstar"
-    """'odrmstar' (the paper's) or 'shortest_path' (a stand-in for tests)."""
+    """'odrmstar' (the paper's), 'prioritized' (beyond the paper: prioritized planning in index order, ODrM* where it
+    finds no plan; with `priority` its give-way rule is in the observation: train/expert.py), or 'shortest_path' (a
+    stand-in for tests)."""
     expert_order: str = "index"
     """The order in which ODrM* takes the agents, which decides who gives way where moves tie (train/expert.py):
     'index' (the instance's, which no agent can observe), 'reversed', or 'position' (by cell, row first, which
@@ -311,6 +318,8 @@ class Args:
         need(not self.stuck_value or (self.stuck_steps >= 2 and self.greedy_fraction > 0),
              "stuck_value needs greedy_fraction > 0 and stuck_steps >= 2 (a fixed point of the greedy team)")
         need(self.stuck_rollout >= 0, f"stuck_rollout must be >= 0, got {self.stuck_rollout}")
+        need(not self.rollout_yielding or (self.stuck_rollout > 0 and self.priority),
+             "rollout_yielding needs stuck_rollout > 0 and priority (the order it yields by is the priority channel's)")
         need(self.mine_episodes >= 0, f"mine_episodes must be >= 0, got {self.mine_episodes}")
         need(not self.mine_episodes or (self.stuck_rollout > 0 and not self.still_bins and not self.recurrent),
              "mine_episodes needs stuck_rollout > 0 (its labeller), and no still input or memory (stuck_cycles)")
@@ -358,7 +367,10 @@ class Args:
         for name in ("lr", "grad_clip", "temperature", "replay_ratio", "huber_delta", "expert_time_limit"):
             need(getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")
         need(self.expert_order in EXPERT_ORDERS, f"expert_order must be one of {EXPERT_ORDERS}, got {self.expert_order!r}")
-        need(self.expert in ("odrmstar", "shortest_path"), f"expert must be odrmstar or shortest_path, got {self.expert!r}")
+        need(self.expert in ("odrmstar", "prioritized", "shortest_path"),
+             f"expert must be odrmstar, prioritized or shortest_path, got {self.expert!r}")
+        need(self.expert != "prioritized" or self.expert_order == "index",
+             f"the prioritized expert plans in index order only, got expert_order {self.expert_order!r}")
         need(self.expert_objective in EXPERT_OBJECTIVES,
              f"expert_objective must be one of {sorted(EXPERT_OBJECTIVES)}, got {self.expert_objective!r}")
         need(self.expert_epsilon >= 1, f"expert_epsilon must be >= 1, got {self.expert_epsilon}")
@@ -465,7 +477,7 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
                  expert_drives: bool = False, greedy_until_stuck: int = 0,
                  blocking: tuple[float, int] = (0.0, 0), goal_exploration: bool = True,
                  stuck_ends: bool = False, stuck_rescue: bool = False, stuck_rollout: int = 0,
-                 stuck_cycles: bool = False) -> tuple[dict, dict]:
+                 stuck_cycles: bool = False, yielding: bool = False) -> tuple[dict, dict]:
     """One episode, every agent acting on its own observation (all in one batch).
 
     Actions: argmax Q (the paper's greedy rule; ties to the lowest index), or the expert's when
@@ -518,7 +530,7 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
             actions = q.argmax(axis=1)
             if stuck_rollout and stuck and eps_now == 0.0:
                 searches += 1
-                dev = (best_deviation(forward, env, actions, stuck_rollout, greedy_until_stuck, stuck_cycles)
+                dev = (best_deviation(forward, env, actions, stuck_rollout, greedy_until_stuck, stuck_cycles, yielding)
                        if searches <= MAX_DEVIATION_SEARCHES else None)
                 if dev is None:
                     eps_now = epsilon  # no single step of one agent gets the team moving: explore, as stuck_steps does
@@ -596,31 +608,41 @@ def mining_envs(seed: int, first: int, count: int, agents: int, size: int, densi
     return envs
 
 
-def mine(forward, envs: list[MapfEnv], horizon: int, rng) -> list[tuple[dict, dict]]:
+def mine(forward, envs: list[MapfEnv], horizon: int, rng, yielding: bool = False) -> list[tuple[dict, dict]]:
     """Mining (Args.mine_episodes): (steps, stats) of play_episode, greedy with the rollout search of `horizon` steps
     wherever the team loops, for the envs whose teams get stuck at all; the others, screened in lockstep by
     greedy_gets_stuck, can yield no label and are not played again."""
-    return [play_episode(forward, env, 0.0, rng, greedy_until_stuck=1, stuck_rollout=horizon, stuck_cycles=True)
+    return [play_episode(forward, env, 0.0, rng, greedy_until_stuck=1, stuck_rollout=horizon, stuck_cycles=True,
+                         yielding=yielding)
             for env, hit in zip(envs, greedy_gets_stuck(forward, envs)) if hit]
 
 
 MAX_DEVIATION_SEARCHES = 8  # best_deviation calls an episode (each costs up to 4 N rollouts of `horizon` steps)
 
 
+def yielding_agents(positions: np.ndarray, radius: int) -> np.ndarray:
+    """(N,) bool: agent i sees an earlier agent j < i within Chebyshev distance `radius` (inside its field of view)."""
+    d = np.abs(positions[:, None, :] - positions[None, :, :]).max(axis=2)
+    earlier = np.tril(np.ones((len(positions),) * 2, dtype=bool), k=-1)  # [i, j]: j < i
+    return ((d <= radius) & earlier).any(axis=1)
+
+
 def best_deviation(forward, env: MapfEnv, actions: np.ndarray, horizon: int, stuck_steps: int,
-                   cycles: bool = False) -> tuple[int, int] | None:
+                   cycles: bool = False, yielding: bool = False) -> tuple[int, int] | None:
     """(agent, action) that gets a greedy team out of a fixed point, or None.
 
     For each agent i and each action a other than its greedy one (actions), a copy of the episode plays the joint
     actions with a in place of agent i's, then greedy play for up to `horizon` steps, stopping early where the copy
     stands still `stuck_steps` steps again (with `cycles`: where its joint state repeats, so it loops for ever). A deviation refused at once is skipped. Best: solved in the fewest steps;
-    else the lowest sum over agents of the distance to the goal at the copy's end, if below the sum now."""
+    else the lowest sum over agents of the distance to the goal at the copy's end, if below the sum now. With
+    `yielding`, only the agents yielding_agents finds deviate (all of them where it finds none)."""
     dist = env.dist
     idx = np.arange(env.n_agents)
     sum_dist = lambda pos: int(dist[idx, pos[:, 0], pos[:, 1]].sum())  # noqa: E731
     cfg = getattr(forward, "cfg", NetworkConfig())
     best, best_key = None, (1, sum_dist(env.positions))  # (0, steps) solved; (1, sum of distances) not
-    for i in range(env.n_agents):
+    movers = yielding_agents(env.positions, cfg.fov_size // 2) if yielding else np.ones(env.n_agents, dtype=bool)
+    for i in np.flatnonzero(movers) if movers.any() else range(env.n_agents):
         for a in range(5):
             if a == actions[i]:
                 continue
@@ -965,7 +987,7 @@ TRAIN_COLUMNS = ("step", "stage", "episodes", "l_dqn", "l_hscl", "hscl_weight", 
                  "refused_minus_stay", "refused_rows", "adv_norm", "q_mean", "mc_return_mean", "q_return_corr", "agreement",
                  "train_success", "train_steps", "mean_team", "samples_per_s", "learner_steps_per_s", "env_rows_per_s",
                  "epsilon", "blocked_share", "rescued_episodes", "blocker_rows", "blocker_move_labels", "blocker_states",
-                 "deviations", "mined_labels", "elapsed_s")
+                 "deviations", "mined_labels", "pp_label_share", "elapsed_s")
 EVAL_COLUMNS = ("step", "stage", "agents", "size", "success_rate", "average_step", "ema_success_rate", "ema_average_step")
 
 
@@ -1049,10 +1071,12 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                                         goal_exploration=args.goal_exploration,
                                         stuck_ends=args.stuck_value and greedy, stuck_rescue=args.stuck_rescue and greedy,
                                         stuck_rollout=args.stuck_rollout if greedy else 0,
-                                        stuck_cycles=args.stuck_cycles)
+                                        stuck_cycles=args.stuck_cycles, yielding=args.rollout_yielding)
             rows = episode_rows(steps, stats["success"], args.gamma, args.n_step, args.feasible_labels,
                                 STILL_KEYS[args.still_count], goals=None if args.parked_labels else env.goals,
                                 episode=state["episodes"], fixed_point=stats["fixed_point"])
+            stats["pp_states"] = getattr(oracle, "pp_states", 0)
+            stats["odrm_states"] = getattr(oracle, "odrm_states", 0)
             # Look inside: the blockers' rows as stored, and how many carry a move label (the expert's way out).
             stats["blocker_rows"] = int(rows["blocker"].sum())
             stats["blocker_move_labels"] = int((rows["expert"][rows["blocker"]] > 0).sum())
@@ -1065,7 +1089,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             m_envs = mining_envs(args.seed, state.get("mined", 0), args.mine_episodes, m_agents, m_size, args.density,
                                  args.max_episode_steps, args.last_action, ncfg)
             state["mined"] = state.get("mined", 0) + args.mine_episodes
-            for m_steps, m_stats in mine(act_q, m_envs, args.stuck_rollout, rng):
+            for m_steps, m_stats in mine(act_q, m_envs, args.stuck_rollout, rng, args.rollout_yielding):
                 if m_stats["deviations"]:
                     m_rows = episode_rows(m_steps, m_stats["success"], args.gamma, args.n_step, False,
                                           STILL_KEYS[args.still_count], episode=state["episodes"])
@@ -1211,6 +1235,9 @@ def _log_row(args: Args, state: dict, window: dict, session_t0: float, epsilon: 
             "blocker_states": sum(e.get("blocker_states", 0) for e in eps),
             "deviations": sum(e.get("deviations", 0) for e in eps),
             "mined_labels": sum(e.get("mined_labels", 0) for e in eps),
+            # expert 'prioritized': the share of labelled states the prioritized plan answered (the rest: ODrM*)
+            "pp_label_share": (sum(e.get("pp_states", 0) for e in eps)
+                               / max(1, sum(e.get("pp_states", 0) + e.get("odrm_states", 0) for e in eps))),
             "elapsed_s": round(state["elapsed"] + time.monotonic() - session_t0, 1)}
 
 

@@ -1,4 +1,6 @@
-"""The expert behind HSCL labels: ODrM* (paper) or a per-agent shortest-path stand-in (tests, smoke runs).
+"""The expert behind HSCL labels: ODrM* (paper), prioritized planning in index order falling back to ODrM*
+(beyond the paper: a give-way rule the priority channel shows), or a per-agent shortest-path stand-in (tests,
+smoke runs).
 
 Two uses:
 - `solve(...)`: a whole expert solution of a training instance, positions (T+1, N, 2), for demonstrations;
@@ -102,6 +104,24 @@ class OrderedOracle:
         return out
 
 
+class _PrioritizedThenOdrm:
+    """Beyond the paper: prioritized planning in index order (mapf_world.planners.prioritized), whose give-way
+    rule the priority channel shows; where it finds no plan (an earlier agent parked in the only way), the
+    ODrM* oracle labels that state. `pp_states` / `odrm_states` count the states each answered."""
+
+    def __init__(self, pp, odrm):
+        self._pp, self._odrm = pp, odrm
+        self.pp_states = self.odrm_states = 0
+
+    def actions(self, positions: np.ndarray) -> np.ndarray:
+        actions = self._pp.actions(positions)
+        if actions is not None:
+            self.pp_states += 1
+            return actions
+        self.odrm_states += 1
+        return self._odrm.actions(positions)
+
+
 def make_oracle(kind: str, grid: np.ndarray, goals: np.ndarray, dist: np.ndarray, epsilon: float, time_limit: float,
                 order: str = "index", objective: str = "free_goal_wait"):
     """An oracle with `.actions(positions)`; `order` and `objective` (odrmstar only): see EXPERT_ORDERS and
@@ -116,7 +136,15 @@ def make_oracle(kind: str, grid: np.ndarray, goals: np.ndarray, dist: np.ndarray
                                             objective=objective))
 
         return make(goals) if order == "index" else OrderedOracle(make, goals, order)
-    raise ValueError(f"unknown expert {kind!r} (odrmstar or shortest_path)")
+    if kind == "prioritized":
+        from mapf_world.planners.expert import ExpertOracle
+        from mapf_world.planners.prioritized import PrioritizedOracle
+
+        if order != "index":
+            raise ValueError(f"the prioritized expert plans in index order only, got order {order!r}")
+        odrm = _OdrmOracle(ExpertOracle(grid, goals, epsilon=epsilon, time_limit=time_limit, objective=objective))
+        return _PrioritizedThenOdrm(PrioritizedOracle(grid, goals, dist), odrm)
+    raise ValueError(f"unknown expert {kind!r} (odrmstar, prioritized or shortest_path)")
 
 
 def solve(kind: str, env: MapfEnv, epsilon: float, time_limit: float) -> np.ndarray:

@@ -107,7 +107,11 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
     repeat with period p + 1 over the last steps (1: a fixed point, 2: agents stepping back and forth, ...; the last
     entry: no period up to MAX_PERIOD, a team that wanders); `off_goal` the agents off their goal at the end,
     `moving_off_goal` those of them that move within the loop, `moving_on_goal` agents on their goal at the end that
-    leave it within the loop (making way and coming back)."""
+    leave it within the loop (making way and coming back). Inside the loop (the last `period` steps of a failed case
+    that loops), `loop_agent_steps` counts the agents' steps, `loop_argmax_is_label` those whose greedy action is the
+    label of the model's own expert (train_args' `expert`: ODrM* or the prioritized plan) from that state, and
+    `loops_expert_leaves` the looping cases in which some agent's label differs at some step: where the expert would
+    leave the loop, so the network fails to fit or to tell apart a state that it was taught."""
     from mapf_policy.train.expert import ExpertFailed, make_oracle
 
     net, _, meta = load_model(path)
@@ -116,7 +120,10 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
     out = {"failed_cases": 0, "fixed_point": 0, "refused": 0, "refused_with_room": 0, "refused_is_argmax": 0,
            "label_is_refused_move": 0, "labelled": 0, "blockers": 0, "blocker_on_goal": 0, "blocker_label_moves": 0,
            "blocker_label_rank": [], "blocker_moves_outweigh_stay": 0, "lead": [],
-           "period_counts": [0] * (MAX_PERIOD + 1), "off_goal": 0, "moving_off_goal": 0, "moving_on_goal": 0}
+           "period_counts": [0] * (MAX_PERIOD + 1), "off_goal": 0, "moving_off_goal": 0, "moving_on_goal": 0,
+           "loops": 0, "loop_agent_steps": 0, "loop_argmax_is_label": 0, "loops_expert_leaves": 0}
+    loop_expert = meta.get("train_args", {}).get("expert", "odrmstar")
+    loop_expert = loop_expert if loop_expert in ("odrmstar", "prioritized") else "odrmstar"
     for inst in generated_cases(seed, COMPARE_STREAM, [agents], cases, side, density):
         env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode, heading=net.cfg.heading,
                       heading_refused=net.cfg.heading_refused, priority=net.cfg.priority)
@@ -135,6 +142,20 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
         out["off_goal"] += int((~home).sum())
         out["moving_off_goal"] += int((moving & ~home).sum())
         out["moving_on_goal"] += int((moving & home).sum())
+        if period:
+            out["loops"] += 1
+            leaves = False
+            for t in range(len(positions) - 1 - period, len(positions) - 1):
+                try:
+                    loop_label = make_oracle(loop_expert, env.grid, env.goals, env.dist, expert_epsilon, 2.0,
+                                             objective=expert_objective).actions(positions[t])
+                except ExpertFailed:
+                    continue
+                same = loop_label == steps["action"][t]
+                out["loop_agent_steps"] += len(same)
+                out["loop_argmax_is_label"] += int(same.sum())
+                leaves |= not same.all()
+            out["loops_expert_leaves"] += int(leaves)
         obs, action, refused = steps["obs"][-2], steps["action"][-1], steps["failed"][-1]
         if isinstance(forward, RecurrentActor):  # its last call was at obs, with the memory it had then
             q = forward.q.numpy()
@@ -247,7 +268,9 @@ def main(argv=None) -> int:
                       f"the stay under softmax(Q / T). Loops at the end by period 1..{MAX_PERIOD}, then none: "
                       f"{ {(p + 1 if p < MAX_PERIOD else 'none'): c for p, c in enumerate(rep['period_counts']) if c} }; {rep['off_goal']} agents "
                       f"off their goal, {rep['moving_off_goal']} of them moving in the loop; {rep['moving_on_goal']} "
-                      f"agents on their goal leave it within the loop")
+                      f"agents on their goal leave it within the loop. In the loops ({rep['loops']}), the argmax is the "
+                      f"expert's label at {rep['loop_argmax_is_label']} of {rep['loop_agent_steps']} agent-steps; the "
+                      f"expert would leave {rep['loops_expert_leaves']} of them")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0 if all(r["passed"] for r in rows) else 1
