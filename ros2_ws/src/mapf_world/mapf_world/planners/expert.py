@@ -19,7 +19,7 @@ import numpy as np
 from mapf_world.grid import DELTAS, check_cells, check_grid
 from mapf_world.heuristics import UNREACHABLE, distance_maps
 from mapf_world.planners.odrmstar import MAX_AGENTS, check_objective, plan_odrmstar
-from mapf_world.planners.result import PlanResult, check_epsilon, check_time_limit, plan_actions
+from mapf_world.planners.result import PlanResult, check_epsilon, check_time_limit, follow_plan, plan_actions
 
 
 class ExpertOracle:
@@ -54,13 +54,10 @@ class ExpertOracle:
     def actions(self, positions) -> np.ndarray:
         """(N,) int64 next actions from `positions` (N, 2)."""
         pos = np.asarray(positions)
-        if self._positions is not None and pos.shape == self.goals.shape:
-            nxt = min(self._step + 1, self._positions.shape[0] - 1)
-            if np.array_equal(pos, self._positions[nxt]):
-                self._step = nxt
-                return self._action_at(nxt)
-            if np.array_equal(pos, self._positions[self._step]):
-                return self._action_at(self._step)
+        on = follow_plan(self._positions, self._step, pos)
+        if on is not None:
+            self._step = on
+            return self._action_at(on)
         pos = check_cells(self.grid, pos, what="positions")
         if pos.shape != self.goals.shape:
             raise ValueError(f"positions has {pos.shape[0]} agents, the oracle {self.goals.shape[0]}")

@@ -24,7 +24,7 @@ import numpy as np
 
 from mapf_world.grid import DELTAS, check_cells, check_grid
 from mapf_world.heuristics import UNREACHABLE, distance_maps
-from mapf_world.planners.result import plan_actions
+from mapf_world.planners.result import follow_plan, plan_actions
 
 # Expansions per agent before the search gives up (a 20x20 map has 400 cells; a free path needs ~40).
 DEFAULT_MAX_EXPANSIONS = 20_000
@@ -172,13 +172,10 @@ class PrioritizedOracle:
 
     def actions(self, positions) -> np.ndarray | None:
         pos = np.asarray(positions, dtype=np.int64)
-        if self._positions is not None and pos.shape == self.goals.shape:
-            nxt = min(self._step + 1, self._positions.shape[0] - 1)
-            if np.array_equal(pos, self._positions[nxt]):
-                self._step = nxt
-                return self._action_at(nxt)
-            if np.array_equal(pos, self._positions[self._step]):
-                return self._action_at(self._step)
+        on = follow_plan(self._positions, self._step, pos)
+        if on is not None:
+            self._step = on
+            return self._action_at(on)
         result = plan_prioritized(self.grid, pos, self.goals, self.dist, self.max_expansions, self._nbrs)
         self.last_failed = not result.solved
         if not result.solved:

@@ -79,3 +79,18 @@ def plan_actions(positions: np.ndarray) -> np.ndarray:
         t, i = np.argwhere(~match.any(axis=-1))[0]
         raise ValueError(f"plan step {t + 1}: agent {i} moves by {delta[t, i].tolist()}, not one 4-neighbour step")
     return np.argmax(match, axis=-1)
+
+
+def follow_plan(plan: np.ndarray | None, step: int, positions: np.ndarray) -> int | None:
+    """The step of `plan` (T+1, N, 2) the agents stand at, for oracles that reuse a plan while the agents keep to it:
+    step + 1 when they did what the plan said, `step` when they are where they were (asked again, or everyone
+    waited); None when they left the plan, or there is none. The rest of a plan from any of its steps is a valid
+    plan from there."""
+    if plan is None or positions.shape != plan.shape[1:]:
+        return None
+    nxt = min(step + 1, plan.shape[0] - 1)
+    if np.array_equal(positions, plan[nxt]):
+        return nxt
+    if np.array_equal(positions, plan[step]):
+        return step
+    return None
