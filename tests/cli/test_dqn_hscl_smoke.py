@@ -153,12 +153,13 @@ def test_a_heading_run_stores_seven_channels_and_the_ladder_plays_it_with_them(r
     assert out.returncode == (0 if rows[0]["passed"] else 1) and rows[0]["cases"] == 3, out.stderr[-2000:]
 
 
-def test_a_priority_run_stores_its_channel_and_mining_and_the_ladder_play_it(repo_root, tmp_path):
-    run = _run(repo_root, tmp_path, "--run-name", "p", "--priority", "--heading", "--greedy-fraction", "0.5",
-               "--stuck-steps", "1", "--stuck-cycles", "--stuck-rollout", "4", "--mine-episodes", "1")
+def test_a_priority_run_stores_its_channels_and_mining_and_the_ladder_play_them(repo_root, tmp_path):
+    run = _run(repo_root, tmp_path, "--run-name", "p", "--priority", "--heading", "--goal-dirs", "--greedy-fraction",
+               "0.5", "--stuck-steps", "1", "--stuck-cycles", "--stuck-rollout", "4", "--mine-episodes", "1")
     assert run.returncode == 0, run.stderr[-3000:]
     _, cfg, meta = load_model(tmp_path / "runs" / "p" / "last.pt")
-    assert cfg.priority and cfg.heading and cfg.fov_channels == 8 and meta["train_args"]["priority"] is True
+    assert cfg.priority and cfg.heading and cfg.goal_dirs and cfg.fov_channels == 12
+    assert meta["train_args"]["priority"] is True and meta["train_args"]["goal_dirs"] is True
     out = subprocess.run([str(repo_root / "scripts" / "ladder"), str(tmp_path / "runs" / "p" / "last.pt"), "--rung", "1",
                           "--cases", "3", "--json", str(tmp_path / "p.json"), "--stuck", "--no-progress"],
                          capture_output=True, text=True, timeout=120)

@@ -47,6 +47,9 @@ def export_model(model_path, out_path=None) -> Path:
     if cfg.priority:
         raise ValueError(f"{model_path} reads the priority channel (NetworkConfig.priority, a training experiment beyond "
                          "the paper): the robot runtime builds the paper's six channels and has no export for it")
+    if cfg.goal_dirs:
+        raise ValueError(f"{model_path} reads the goal-direction channels (NetworkConfig.goal_dirs, a training experiment "
+                         "beyond the paper): the robot runtime builds the paper's six channels and has no export for it")
     arrays = {k: v.detach().cpu().float().numpy() for k, v in net.state_dict().items()}
     header = {"format": EXPORT_FORMAT, "version": EXPORT_VERSION, "network_config": cfg.asdict(), "meta": meta,
               "source": {"file": model_path.name, "sha256": file_sha256(model_path)},

@@ -23,6 +23,8 @@ other agents face, each one's cell plus its last requested move (ObservationBuil
 `heading_refused=True` as well, only the moves that were refused (the cells another agent tried and failed to enter).
 `priority=True` (beyond the paper; off by default) appends one more channel after those: the other agents ahead of
 this one in the instance's agent order (ObservationBuilder.priorities).
+`goal_dirs=True` (beyond the paper; off by default) appends four channels last: which way each other agent's goal
+lies from its cell (ObservationBuilder.goal_directions).
 """
 from __future__ import annotations
 
@@ -48,7 +50,8 @@ class MapfEnv:
     """One instance (map, starts, goals). Arrays follow docs/ARCHITECTURE.md: cells are (row, col)."""
 
     def __init__(self, grid, starts, goals, fov_size: int = 9, max_steps: int = 256, last_action: str = "requested",
-                 heading: bool = False, heading_refused: bool = False, priority: bool = False):
+                 heading: bool = False, heading_refused: bool = False, priority: bool = False,
+                 goal_dirs: bool = False):
         # Cells on the map, free, distinct, goals reachable (cheap component labels; the BFS waits for reset()).
         self._grid, self._starts, self._goals = check_instance(grid, starts, goals)
         if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
@@ -61,6 +64,7 @@ class MapfEnv:
         self.heading = bool(heading)
         self.heading_refused = bool(heading_refused)
         self.priority = bool(priority)
+        self.goal_dirs = bool(goal_dirs)
         if self.heading_refused and not self.heading:
             raise ValueError("heading_refused=True needs heading=True (it says what the heading channel marks)")
         self._dist: np.ndarray | None = None
@@ -154,6 +158,8 @@ class MapfEnv:
         if self.priority:
             ahead = self.observation_builder.priorities(self._positions)
             obs["fov"] = np.concatenate([obs["fov"], ahead[:, None]], axis=1)
+        if self.goal_dirs:
+            obs["fov"] = np.concatenate([obs["fov"], self.observation_builder.goal_directions(self._positions)], axis=1)
         return obs | {
             "still": self._still.copy(), "refused_run": self._refused_run.copy(), "contact_run": self._contact_run.copy()}
 

@@ -19,6 +19,11 @@ Beyond the paper, optional (`priorities`, MapfEnv(priority=True) appends it afte
 expert (ODrM*, agents taken in index order) settles ties over who gives way by that order; a fleet's ground
 station knows each robot's number, so the order is observable without any robot telling another.
 
+Beyond the paper, optional (`goal_directions`, MapfEnv(goal_dirs=True) appends them last): four channels, at the cell
+of each other agent the bits of ITS heuristic channels there (which of up, down, left, right bring it closer to its
+own goal). Who gives way in the expert's plan depends on where the others are going; the ground station assigns
+every goal, so it can show each robot which way its neighbours' goals lie without any robot telling another.
+
 Everything that depends only on the map and the goals is precomputed once, padded by l // 2, so a
 step only gathers windows: row r, col c of the map is row r + l//2, col c + l//2 of the padded
 arrays, and the window of an agent at (r, c) starts at padded (r, c).
@@ -165,6 +170,19 @@ class ObservationBuilder:
         ids[r + pos[:, 0], r + pos[:, 1]] = self._rows + 1
         windows = sliding_window_view(ids, (self.fov_size, self.fov_size))[pos[:, 0], pos[:, 1]]  # (N, l, l)
         return ((windows > 0) & (windows <= self._rows[:, None, None])).astype(np.float32)
+
+    def goal_directions(self, positions) -> np.ndarray:
+        """(N, 4, l, l) float32: in each agent's window, at the cell of every other agent j the four heuristic bits
+        of agent j at that cell (up, down, left, right: the moves that bring j closer to its goal); 0 elsewhere,
+        and at the agent's own cell."""
+        pos = self._check_positions(positions)
+        r = self._radius
+        bits = np.zeros((4,) + self._obstacles.shape, dtype=np.float32)  # padded maps
+        bits[:, r + pos[:, 0], r + pos[:, 1]] = self._heuristic[self._rows, :, r + pos[:, 0], r + pos[:, 1]].T
+        out = sliding_window_view(bits, (self.fov_size, self.fov_size), axis=(1, 2))[:, pos[:, 0], pos[:, 1]]
+        out = np.ascontiguousarray(out.transpose(1, 0, 2, 3))  # (N, 4, l, l)
+        out[:, :, r, r] = 0.0  # not one's own (its own bits are channels 2-5)
+        return out
 
     def build_one(self, i: int, positions, last_action) -> dict:
         """Observation of agent i alone (no batch dimension); positions are all agents' cells."""

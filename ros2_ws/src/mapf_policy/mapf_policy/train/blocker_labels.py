@@ -46,8 +46,8 @@ def blocker_label_split(model, episodes: int, seed: int = 101, agents: int = 4, 
     rows_by_kind, states, solved = collections.Counter(), [], 0
     for ep in tqdm(range(episodes), disable=not progress, desc="episodes"):
         inst = generate_instance(instance_rng(seed, ACTOR_STREAM, ep), size=size, density=density, n_agents=agents)
-        env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode, heading=cfg.heading,
-                      heading_refused=cfg.heading_refused, priority=cfg.priority)
+        env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode,
+                      **cfg.env_channels())
         oracle = make_oracle(expert, env.grid, env.goals, env.dist, 10.0, min(2.0, budget))
         steps, stats = play_episode(act, env, 0.0, rng, oracle, budget)
         solved += stats["success"]

@@ -91,6 +91,9 @@ class Args:
     priority: bool = False
     """Beyond the paper: one more fov channel, the other agents ahead of this one in the instance's agent order, the
     order in which the expert settles who gives way (NetworkConfig.priority, MapfEnv(priority=True))."""
+    goal_dirs: bool = False
+    """Beyond the paper: four more fov channels, which way each other agent in view has to go to its goal (its own
+    heuristic bits at its cell; NetworkConfig.goal_dirs, MapfEnv(goal_dirs=True))."""
     recurrent: bool = False
     """Beyond the paper (DHC's design): a GRU memory per agent (NetworkConfig.recurrent), trained on sequences of
     `sequence_length` steps of one agent, each started from the memory its actor had there (R2D2's stored state).
@@ -385,7 +388,7 @@ class Args:
     def network_config(self) -> NetworkConfig:
         return NetworkConfig(dueling=self.dueling, still_bins=self.still_bins, still_count=self.still_count,
                              recurrent=self.recurrent, heading=self.heading,
-                             heading_refused=self.heading_refused, priority=self.priority,
+                             heading_refused=self.heading_refused, priority=self.priority, goal_dirs=self.goal_dirs,
                              **ABLATIONS.get(self.variant, {}))
 
 
@@ -604,7 +607,7 @@ def mining_envs(seed: int, first: int, count: int, agents: int, size: int, densi
     for e in range(first, first + count):
         inst = generate_instance(instance_rng(seed, MINE_STREAM, e), size=size, density=density, n_agents=agents)
         envs.append(MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=last_action,
-                            heading=cfg.heading, heading_refused=cfg.heading_refused, priority=cfg.priority))
+                            **cfg.env_channels()))
     return envs
 
 
@@ -971,7 +974,7 @@ def greedy_outcomes(forward, cases, last_action: str, max_steps: int, epsilon: f
     for k, inst in enumerate(cases):
         cfg = getattr(forward, "cfg", NetworkConfig())
         env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=last_action,
-                      heading=cfg.heading, heading_refused=cfg.heading_refused, priority=cfg.priority)
+                      **cfg.env_channels())
         _, stats = play_episode(forward, env, epsilon, np.random.default_rng(k if epsilon > 0 else 0))
         outcomes.append((stats["success"], stats["steps"] if stats["success"] else max_steps))
     return outcomes
@@ -1053,7 +1056,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             ep_rng = instance_rng(args.seed, ACTOR_STREAM, state["episodes"])
             inst = generate_instance(ep_rng, size=size, density=args.density, n_agents=agents)
             env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=args.max_episode_steps, last_action=args.last_action,
-                          heading=args.heading, heading_refused=args.heading_refused, priority=args.priority)
+                          **ncfg.env_channels())
             drive = ep_rng.random() < args.expert_drive_fraction
             relabel = drive or ep_rng.random() < args.relabel_fraction
             greedy = not drive and ep_rng.random() < args.greedy_fraction

@@ -125,8 +125,8 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
     loop_expert = meta.get("train_args", {}).get("expert", "odrmstar")
     loop_expert = loop_expert if loop_expert in ("odrmstar", "prioritized") else "odrmstar"
     for inst in generated_cases(seed, COMPARE_STREAM, [agents], cases, side, density):
-        env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode, heading=net.cfg.heading,
-                      heading_refused=net.cfg.heading_refused, priority=net.cfg.priority)
+        env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode,
+                      **net.cfg.env_channels())
         steps, stats = play_episode(forward, env, 0.0, np.random.default_rng(0))
         if stats["success"]:
             continue
