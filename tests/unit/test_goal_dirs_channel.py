@@ -13,8 +13,7 @@ from mapf_world.env import MapfEnv
 from mapf_world.grid import RIGHT, STAY
 from mapf_world.observation import ObservationBuilder
 
-R = 4  # centre of a 9x9 field of view
-UP_, DOWN_, LEFT_, RIGHT_ = range(4)  # the four channels, in the order of the heuristic channels 2-5
+R = 4  # centre of a 9x9 field of view; the four channels are up, down, left, right, as the heuristic channels 2-5
 
 
 def test_each_agent_sees_which_way_the_others_goals_lie():
@@ -30,7 +29,7 @@ def test_each_agent_sees_which_way_the_others_goals_lie():
     # agent 1 sees agent 0 one to its left, whose goal (0, 3) is straight up
     assert out[1, :, R, R - 1].tolist() == [1, 0, 0, 0]
     # agent 2 at (0, 0), 3 rows up and 4 columns left of agent 1, is in its view; its goal (6, 0) is straight down
-    assert out[1, :, R - 3, R - 4].tolist() == [0, 1, 0, 0]  # (0, 0) to (6, 0): straight down
+    assert out[1, :, R - 3, R - 4].tolist() == [0, 1, 0, 0]
     # nothing at an agent's own cell, nothing where no agent stands, every mark on an agent of the agent channel
     assert not out[:, :, R, R].any()
     fov = builder.build(pos, [STAY] * 3)["fov"]

@@ -126,6 +126,13 @@ class NetworkConfig:
         return {"heading": self.heading, "heading_refused": self.heading_refused, "priority": self.priority,
                 "goal_dirs": self.goal_dirs}
 
+    def extra_channels(self) -> list[str]:
+        """The fov channels beyond the paper's six that this network reads, as 'the X channel(s) (NetworkConfig.x)':
+        training experiments that the robot runtime, which builds the paper's six, does not serve."""
+        names = {"heading": "the heading channel", "priority": "the priority channel",
+                 "goal_dirs": "the goal-direction channels"}
+        return [f"{what} (NetworkConfig.{key})" for key, what in names.items() if getattr(self, key)]
+
     def validate(self) -> None:
         if self.fov_size < 9 or self.fov_size % 2 == 0:
             raise ValueError(f"fov_size must be an odd integer >= 9 (four 3x3 convs), got {self.fov_size}")

@@ -41,15 +41,9 @@ def export_model(model_path, out_path=None) -> Path:
     if cfg.recurrent:
         raise ValueError(f"{model_path} is a recurrent network (NetworkConfig.recurrent, a training experiment beyond "
                          "the paper): the robot runtime is feed-forward and has no export for it")
-    if cfg.heading:
-        raise ValueError(f"{model_path} reads the heading channel (NetworkConfig.heading, a training experiment beyond "
-                         "the paper): the robot runtime builds the paper's six channels and has no export for it")
-    if cfg.priority:
-        raise ValueError(f"{model_path} reads the priority channel (NetworkConfig.priority, a training experiment beyond "
-                         "the paper): the robot runtime builds the paper's six channels and has no export for it")
-    if cfg.goal_dirs:
-        raise ValueError(f"{model_path} reads the goal-direction channels (NetworkConfig.goal_dirs, a training experiment "
-                         "beyond the paper): the robot runtime builds the paper's six channels and has no export for it")
+    if cfg.extra_channels():
+        raise ValueError(f"{model_path} reads {' and '.join(cfg.extra_channels())}, a training experiment beyond the "
+                         "paper: the robot runtime builds the paper's six channels and has no export for it")
     arrays = {k: v.detach().cpu().float().numpy() for k, v in net.state_dict().items()}
     header = {"format": EXPORT_FORMAT, "version": EXPORT_VERSION, "network_config": cfg.asdict(), "meta": meta,
               "source": {"file": model_path.name, "sha256": file_sha256(model_path)},

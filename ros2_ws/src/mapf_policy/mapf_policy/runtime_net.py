@@ -130,13 +130,8 @@ def read_export(path) -> tuple[dict, dict]:
         raise ValueError(f"{path}: bad network_config: {exc}") from exc
     if cfg.recurrent:
         raise ValueError(f"{path}: a recurrent network (NetworkConfig.recurrent); this runtime is feed-forward")
-    if cfg.heading:
-        raise ValueError(f"{path}: a network with the heading channel (NetworkConfig.heading); this runtime reads six")
-    if cfg.priority:
-        raise ValueError(f"{path}: a network with the priority channel (NetworkConfig.priority); this runtime reads six")
-    if cfg.goal_dirs:
-        raise ValueError(f"{path}: a network with the goal-direction channels (NetworkConfig.goal_dirs); this runtime "
-                         "reads six")
+    if cfg.extra_channels():
+        raise ValueError(f"{path}: a network with {' and '.join(cfg.extra_channels())}; this runtime reads six")
     check_weights(arrays, cfg, str(path))
     if weights_fingerprint(arrays) != header["weights_sha256"]:
         raise ValueError(f"{path}: the weights do not match the fingerprint written at export: the file is damaged "
