@@ -106,14 +106,17 @@ class GraphProbe:
         while time.monotonic() < end:
             self.executor.spin_once(timeout_sec=0.02)
 
-    def spin_until(self, predicate, timeout: float, what: str):
+    def spin_until(self, predicate, timeout: float, what: str, context=None):
+        """Spin until `predicate()` is true and return its value; on timeout fail, with `context()` (for example
+        a process's log tail) in the message when given."""
         end = time.monotonic() + timeout
         while time.monotonic() < end:
             self.executor.spin_once(timeout_sec=0.02)
             value = predicate()
             if value:
                 return value
-        raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        extra = f"\n{context()}" if context is not None else ""
+        raise AssertionError(f"timed out after {timeout} s waiting for {what}{extra}")
 
     def close(self) -> None:
         self.executor.shutdown()

@@ -33,8 +33,10 @@ def test_world_stall_while_robots_answer_is_not_a_timeout(tmp_path, domain_id, a
 
     def freeze_world(msg):
         # Robot 0's observation arrives here as it does at its policy node: the world is collecting actions.
-        # (Not step 0: the probe may match the world's publisher only after that step has closed.)
-        if msg.step in (1, 2) and msg.step not in stalled:
+        # The first two steps from 1 on that the probe sees (not step 0: the probe may match the world's
+        # publisher only after that step has closed; on a loaded machine, after later steps too: one CI run
+        # saw neither step 1 nor step 2 when only those two were frozen).
+        if msg.step >= 1 and len(stalled) < 2 and msg.step not in stalled:
             pid = fleet.group.procs["world"].pid
             os.kill(pid, signal.SIGSTOP)
             time.sleep(0.6)
@@ -44,15 +46,15 @@ def test_world_stall_while_robots_answer_is_not_a_timeout(tmp_path, domain_id, a
     probe.node.create_subscription(AgentObservation, "/robot_0/observation", freeze_world, 10)
     fleet.start()
     try:
-        fleet.wait_running()
-        probe.spin_until(lambda: fleet.group.procs["world"].poll() is not None, 60, "the world to finish")
+        # The probe spins from the start (not after wait_running) so that it sees the earliest steps it can.
+        probe.spin_until(lambda: fleet.group.procs["world"].poll() is not None, 90, "the world to finish")
         code = fleet.wait_world()
     finally:
         fleet.stop()
         probe.close()
     assert code == 0, fleet.group.log_text("world")[-3000:]
     s = json.loads(fleet.summary.read_text())
-    assert stalled == [1, 2], stalled
+    assert len(stalled) == 2, f"the probe saw robot 0's observation at steps {stalled} only (of {s['steps']})"
     # A freeze that landed while the world collected actions makes that step take about the freeze to
     # close. One must have (a loaded test process may see an observation only after its step closed).
     assert any(s["action_wall_s"][k] >= 0.5 for k in stalled), s["action_wall_s"]
@@ -67,20 +69,32 @@ def test_killed_policy_node_stays_others_go_on_restarted_it_rejoins(tmp_path, do
     probe = GraphProbe(domain_id)
     statuses = []
     probe.node.create_subscription(FleetStatus, "/fleet/status", statuses.append, 100)
+
+    def logs():
+        return "\n".join(f"--- {name} log ---\n{fleet.group.log_text(name)[-2500:]}" for name in ("world", "drive_1", "policy_0"))
+
     bogus = probe.node.create_publisher(AgentAction, "/robot_1/action", 10)
     fleet.start()
     g = fleet.group
     try:
         fleet.wait_running()
-        probe.spin_until(lambda: any(s.step >= 2 for s in statuses), 30, "two steps")
+        probe.spin_until(lambda: any(s.step >= 2 for s in statuses), 30, "two steps", context=logs)
         g.stop("policy_1", sig=signal.SIGKILL)
         killed_at = statuses[-1].step
 
         # While robot 1 has no policy, an invalid action on its topic is rejected and it stays.
-        probe.spin_until(lambda: statuses[-1].step >= killed_at + 2, 20, "steps after the kill")
-        target = statuses[-1].step   # the world is collecting this step now
-        bogus.publish(AgentAction(step=target, robot_id=1, action=9))
-        probe.spin_until(lambda: any(s.step == target + 1 for s in statuses), 10, "the step with the bad action")
+        probe.spin_until(lambda: statuses[-1].step >= killed_at + 2, 20, "steps after the kill", context=logs)
+        # A step in which every robot timed out was a stall of the whole machine (seen 1 run in 11 on a loaded
+        # 2-core machine): the bad action may not have been read in time either. It is sent again, at most 3 times.
+        tried = []
+        while len(tried) < 3:
+            target = statuses[-1].step   # the world is collecting this step now
+            bogus.publish(AgentAction(step=target, robot_id=1, action=9))
+            closed = probe.spin_until(lambda: next((s for s in statuses if s.step == target + 1 and len(s.outcomes) == 3),
+                                                   None), 10, "the step with the bad action", context=logs)
+            tried.append(target)
+            if list(closed.outcomes) != [TIMEOUT] * 3:
+                break
 
         g.start("policy_1", fleet.policy_command(1))
         restarted_at = statuses[-1].step
@@ -114,7 +128,7 @@ def test_killed_policy_node_stays_others_go_on_restarted_it_rejoins(tmp_path, do
     assert len(others_out) <= 2, (f"robots 0 and 2 must go on: {outcomes}\n--- world log ---\n"
                                   f"{fleet.group.log_text('world')[-3000:]}\n--- policy_0 log ---\n"
                                   f"{fleet.group.log_text('policy_0')[-1500:]}")
-    assert by_step.get(target + 1, [None, None])[1] == REJECTED, f"bad action at step {target}: {outcomes}"
+    assert by_step.get(target + 1, [None, None])[1] == REJECTED, f"bad action at steps {tried}: {outcomes}"
     rejoined = [k for k in sorted(by_step) if k > max(timeouts_1) and by_step[k][1] in (OK, BLOCKED)]
     assert rejoined or not world_alive, f"robot 1 never answered after the restart: {outcomes}"
     world_log = g.log_text("world")

@@ -17,7 +17,7 @@ import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import yaml
 
@@ -188,20 +188,23 @@ class ProcessGroup:
         if proc.poll() is None:
             proc.send_signal(sig)
 
-    def stop(self, name: str, sig: int = signal.SIGINT, timeout: float = 10.0) -> Optional[int]:
+    def stop(self, name: str, sig: int = signal.SIGINT, timeout: float = 10.0,
+             sent_before: Tuple[str, ...] = ()) -> Optional[int]:
         """Signal one process and wait; escalate to SIGTERM, then STACK_DUMP_SIGNAL (a node prints its threads'
         stacks to its log; a process without that handler ends by it), then SIGKILL. Returns its exit code."""
         proc = self.procs.get(name)
         if proc is None:
             return None
+        sent = list(sent_before)  # signals already sent (stop_all's first), for the message below
         for s, wait in ((sig, timeout), (signal.SIGTERM, 5.0), (STACK_DUMP_SIGNAL, 2.0), (signal.SIGKILL, 5.0)):
             if proc.poll() is not None:
                 break
             if s == STACK_DUMP_SIGNAL:
-                self._logs[name].write(f"[launch] {name} still running after {signal.Signals(sig).name} and SIGTERM: "
+                self._logs[name].write(f"[launch] {name} still running after {' and '.join(sent)}: "
                                        f"its stacks ({STACK_DUMP_SIGNAL.name}) follow, then SIGKILL\n".encode())
                 self._logs[name].flush()
             proc.send_signal(s)
+            sent.append(signal.Signals(s).name)
             try:
                 proc.wait(timeout=wait)
             except subprocess.TimeoutExpired:
@@ -222,5 +225,5 @@ class ProcessGroup:
                 self.procs[name].wait(timeout=max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 pass
-            codes[name] = self.stop(name, signal.SIGTERM)
+            codes[name] = self.stop(name, signal.SIGTERM, sent_before=(signal.Signals(sig).name,))
         return codes

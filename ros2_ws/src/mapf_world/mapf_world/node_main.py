@@ -88,6 +88,7 @@ def spin_until_shutdown(node: Node, close: Optional[Callable[[], None]] = None) 
 
 def run_node(name: str, factory: Callable[[], Node], args=None, close_method: str = "") -> None:
     """main() of a spinning node: init, create (or refuse), spin, shut down."""
+    dump_stacks_on_signal()  # before init: a start-up that hangs in the middleware leaves its place too
     rclpy.init(args=args)
     node = create_node(name, factory)
     if node is not None:
