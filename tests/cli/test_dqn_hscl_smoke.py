@@ -44,6 +44,7 @@ def test_dqn_hscl_logs_what_it_learns_and_resumes(repo_root, tmp_path):
         assert 0.0 <= float(r["dqn_share"]) <= 1.0
         assert float(r["hscl_weight"]) > 0 and float(r["learner_steps_per_s"]) > 0
         assert -1.0 <= float(r["q_return_corr"]) <= 1.0 and float(r["td_abs"]) >= 0
+        assert r["agreement_meet"] == "" or 0.0 <= float(r["agreement_meet"]) <= 1.0  # empty: no agents met
         assert 0 <= int(r["blocker_move_labels"]) <= int(r["blocker_rows"])
         assert 0 <= int(r["blocker_states"]) <= int(r["blocker_rows"])
     evals = _rows(run / "eval.csv")
@@ -105,9 +106,15 @@ def test_ladder_reports_a_rung_and_fails_an_untrained_model(repo_root, tmp_path)
                              text=True, timeout=60)
     assert missing.returncode == 2 and "does not exist" in missing.stderr
     # --agents keeps only those team sizes of a rung (here the 2-agent row of rung 4) and names a size it lacks.
+    # With --agreement each row also counts the agent-steps with another agent in view and the label agreement there.
     two = subprocess.run([str(repo_root / "scripts" / "ladder"), str(model), "--rung", "4", "--agents", "2", "--cases", "2",
-                          "--json", str(tmp_path / "two.json"), "--no-progress"], capture_output=True, text=True, timeout=120)
-    assert [(r["agents"], r["map"], r["cases"]) for r in json.loads((tmp_path / "two.json").read_text())] == [(2, 40, 2)], two.stderr
+                          "--json", str(tmp_path / "two.json"), "--agreement", "--no-progress"], capture_output=True,
+                         text=True, timeout=120)
+    two_rows = json.loads((tmp_path / "two.json").read_text())
+    assert [(r["agents"], r["map"], r["cases"]) for r in two_rows] == [(2, 40, 2)], two.stderr
+    agree = two_rows[0]["agreement"]
+    assert 0 <= agree["solved_agree"] <= agree["solved_steps"] and 0 <= agree["failed_agree"] <= agree["failed_steps"]
+    assert agree["expert"] in ("odrmstar", "prioritized") and "with another agent in view" in two.stdout
     wrong = subprocess.run([str(repo_root / "scripts" / "ladder"), str(model), "--rung", "2", "--agents", "3"],
                            capture_output=True, text=True, timeout=60)
     assert wrong.returncode == 2 and "none of --agents [3]" in wrong.stderr

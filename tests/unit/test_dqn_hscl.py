@@ -7,7 +7,8 @@ import torch
 
 from mapf_policy.config import NetworkConfig
 from mapf_policy.network import QNetwork, count_parameters
-from mapf_policy.train.dqn_hscl import Args, Replay, episode_rows, losses, mixed_sample, parse_stage, play_episode
+from mapf_policy.train.dqn_hscl import (Args, Replay, episode_rows, losses, meeting_rows, mixed_sample, parse_stage,
+                                         play_episode)
 from mapf_world.env import MapfEnv
 from mapf_world.grid import STAY
 
@@ -561,6 +562,26 @@ def test_blocker_weight_weighs_the_pushed_blockers_labelled_rows_in_the_ce_term(
         Args(imitation="ce", blocker_weight=0.0).validate()
 
 
+def test_meet_weight_weighs_the_meeting_rows_in_the_ce_term():
+    q = torch.tensor([[0.3, 0.1, 0.0, -0.2, 0.5], [1.0, 1.2, 0.9, 0.8, 1.1], [0.0, 0.4, 0.0, 0.0, 0.0]])
+    fov = torch.zeros(3, 6, 9, 9)
+    fov[:, 2, 4, 4] = 1.0  # all three off their goal
+    fov[1, 1, 2, 6] = 1.0  # row 1 sees another agent: a meeting row
+    fov[2, 1, 0, 0] = 1.0  # row 2 too, but it has no label
+    batch = {"action": torch.tensor([0, 0, 0]), "ret": torch.zeros(3), "boot_gamma": torch.zeros(3),
+             "expert": torch.tensor([4, 2, -1]), "blocker": torch.tensor([False, False, True]), "fov": fov}
+    per_row = [float(-torch.log_softmax((q[i] - q[i].mean()) / 0.1, dim=0)[k]) for i, k in ((0, 4), (1, 2))]
+    _, weighted, _ = losses(q, torch.zeros(3, 5), batch, Args(imitation="ce", meet_weight=3.0))
+    assert float(weighted) == pytest.approx((per_row[0] + 3 * per_row[1]) / 4, rel=1e-5)
+    _, both, _ = losses(q, torch.zeros(3, 5), batch | {"blocker": torch.tensor([False, True, False])},
+                        Args(imitation="ce", meet_weight=3.0, blocker_weight=2.0))
+    assert float(both) == pytest.approx((per_row[0] + 6 * per_row[1]) / 7, rel=1e-5)  # the weights multiply
+    with pytest.raises(ValueError, match="meet_weight"):
+        Args(meet_weight=3.0).validate()  # the HSCL term
+    with pytest.raises(ValueError, match="meet_weight"):
+        Args(imitation="ce", meet_weight=-1.0).validate()
+
+
 def test_episode_rows_mark_the_pushed_blockers():
     from mapf_policy.train.dqn_hscl import episode_rows
     env = MapfEnv(np.zeros((3, 3), dtype=bool), [(0, 0), (0, 1)], [(0, 2), (0, 1)], max_steps=4)
@@ -696,3 +717,13 @@ def test_best_deviation_with_yielding_moves_only_the_agent_that_sees_an_earlier_
     yielded = best_deviation(_heuristic_greedy, env, np.array([STAY, RIGHT]), 20, 2, yielding=True)
     assert free is not None and free[0] == 0  # unrestricted, the parked agent steps aside (solved soonest)
     assert yielded is not None and yielded[0] == 1  # the later agent goes round instead
+
+
+def test_meeting_rows_are_off_goal_agents_with_another_in_view():
+    grid = np.zeros((12, 12), dtype=np.int8)
+    # agent 0 off goal, agent 1 two cells away (in view), agent 2 on its goal beside agent 1, agent 3 far from all
+    starts, goals = [(2, 2), (2, 4), (2, 5), (10, 10)], [(6, 2), (8, 4), (2, 5), (10, 6)]
+    env = MapfEnv(grid, starts, goals, max_steps=8)
+    obs, _ = env.reset()
+    fov = torch.from_numpy(np.asarray(obs["fov"], dtype=np.float32))
+    assert meeting_rows(fov).tolist() == [True, True, False, False]

@@ -35,3 +35,13 @@ def test_trajectory_period_finds_the_loop_a_team_ends_in():
     walk = np.array([[[0, k]] for k in range(20)])  # a straight walk never repeats
     assert trajectory_period(walk) is None
     assert trajectory_period(np.array([[loop[k % 4]] for k in range(6)])) is None  # too short to show period 4
+
+
+def test_interacting_agents_are_off_their_goal_with_another_in_view():
+    from mapf_policy.train.ladder import interacting
+
+    positions = np.array([[0, 0], [4, 4], [8, 8], [20, 20]])
+    goals = np.array([[5, 5], [4, 4], [0, 0], [0, 1]])
+    # 0 and 2 are 4 from 1 (in a 9x9 view), 8 from each other; 1 stands on its goal; 3 sees no one.
+    assert interacting(positions, goals, 4).tolist() == [True, False, True, False]
+    assert interacting(positions, goals, 3).tolist() == [False, False, False, False]

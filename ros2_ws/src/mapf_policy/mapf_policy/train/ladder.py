@@ -122,8 +122,7 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
            "blocker_label_rank": [], "blocker_moves_outweigh_stay": 0, "lead": [],
            "period_counts": [0] * (MAX_PERIOD + 1), "off_goal": 0, "moving_off_goal": 0, "moving_on_goal": 0,
            "loops": 0, "loop_agent_steps": 0, "loop_argmax_is_label": 0, "loops_expert_leaves": 0}
-    loop_expert = meta.get("train_args", {}).get("expert", "odrmstar")
-    loop_expert = loop_expert if loop_expert in ("odrmstar", "prioritized") else "odrmstar"
+    loop_expert = model_expert(meta)
     for inst in generated_cases(seed, COMPARE_STREAM, [agents], cases, side, density):
         env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode,
                       **net.cfg.env_channels())
@@ -192,6 +191,60 @@ def stuck_report(path, agents: int, side: int, cases: int, seed: int = 0, densit
     return out
 
 
+def model_expert(meta: dict) -> str:
+    """The oracle whose labels a model was trained on (train_args' `expert`): ODrM* or the prioritized plan; ODrM*
+    for models without it and for experts that are no oracle of make_oracle's."""
+    expert = meta.get("train_args", {}).get("expert", "odrmstar")
+    return expert if expert in ("odrmstar", "prioritized") else "odrmstar"
+
+
+def interacting(positions: np.ndarray, goals: np.ndarray, radius: int) -> np.ndarray:
+    """(N,) bool: the agents off their goal with another agent within `radius` cells (Chebyshev: in a field of
+    view of side 2 radius + 1 centred on them), the agent-steps where the expert's label depends on the others."""
+    positions = np.asarray(positions, dtype=np.int64)
+    gap = np.abs(positions[:, None, :] - positions[None, :, :]).max(axis=2)
+    np.fill_diagonal(gap, radius + 1)
+    return (gap <= radius).any(axis=1) & ~(positions == np.asarray(goals)).all(axis=1)
+
+
+def label_agreement(path, agents: int, side: int, cases: int, seed: int = 0, density: float = 0.3,
+                    max_steps: int = 256, every: int = 3) -> dict:
+    """Held-out imitation accuracy where it matters: at every `every`-th step of each greedy episode, how often the
+    greedy action of an interacting agent (off its goal, another agent in its field of view) is the label of the
+    model's own expert (train_args' `expert`, ODrM* or the prioritized plan, one plan per episode) from that state;
+    split by solved and failed episodes. The training log's `agreement` is over replay batches, where about half the
+    labelled rows have nobody in view, and `agreement_meet` over the batches' rows of this kind: both on the
+    training distribution, this one on held-out greedy play (issue 20, thirtieth session)."""
+    from mapf_policy.train.expert import ExpertFailed, make_oracle
+
+    if every < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
+    net, _, meta = load_model(path)
+    forward, mode = acting(net), model_last_action(meta)
+    expert = model_expert(meta)
+    out = {"expert": expert, "solved_steps": 0, "solved_agree": 0, "failed_steps": 0, "failed_agree": 0,
+           "unlabelled_states": 0}
+    for inst in generated_cases(seed, COMPARE_STREAM, [agents], cases, side, density):
+        env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode,
+                      **net.cfg.env_channels())
+        steps, stats = play_episode(forward, env, 0.0, np.random.default_rng(0))
+        oracle = make_oracle(expert, env.grid, env.goals, env.dist, 10.0, 2.0)
+        kind = "solved" if stats["success"] else "failed"
+        for t in range(0, len(steps["action"]), every):
+            cells = steps["obs"][t]["position"].astype(np.int64)
+            mask = interacting(cells, env.goals, net.cfg.fov_size // 2)
+            if not mask.any():
+                continue
+            try:
+                label = oracle.actions(cells)
+            except ExpertFailed:
+                out["unlabelled_states"] += 1
+                continue
+            out[f"{kind}_steps"] += int(mask.sum())
+            out[f"{kind}_agree"] += int((label == steps["action"][t])[mask].sum())
+    return out
+
+
 MAX_PERIOD = 32  # the longest loop trajectory_period looks for
 
 
@@ -233,13 +286,16 @@ def main(argv=None) -> int:
     p.add_argument("--stuck-expert-objective", default="free_goal_wait", choices=sorted(OBJECTIVES),
                    help="ODrM* objective of --stuck's labels (free_goal_wait, the training default; goal_keeping; sum_of_costs)")
     p.add_argument("--stuck-expert-epsilon", type=float, default=10.0, help="ODrM* bound of --stuck's labels (default 10)")
+    p.add_argument("--agreement", action="store_true",
+                   help="also report, for each rung's team sizes, how often the greedy action of an agent with another "
+                        "agent in view is its expert's label (label_agreement; every third step)")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     if args.cases < 1:
         print("error: --cases must be >= 1", file=sys.stderr)
         return 2
-    if args.stuck and args.epsilon > 0:
-        print("error: --stuck reports greedy fixed points; drop --epsilon", file=sys.stderr)
+    if (args.stuck or args.agreement) and args.epsilon > 0:
+        print("error: --stuck and --agreement report on greedy play; drop --epsilon", file=sys.stderr)
         return 2
     torch.set_num_threads(1)
     try:
@@ -271,6 +327,16 @@ def main(argv=None) -> int:
                       f"agents on their goal leave it within the loop. In the loops ({rep['loops']}), the argmax is the "
                       f"expert's label at {rep['loop_argmax_is_label']} of {rep['loop_agent_steps']} agent-steps; the "
                       f"expert would leave {rep['loops_expert_leaves']} of them")
+    if args.agreement:
+        for r in rows:
+            rep = label_agreement(args.model, r["agents"], r["map"], args.cases, args.seed)
+            r["agreement"] = rep
+            share = {k: rep[f"{k}_agree"] / rep[f"{k}_steps"] if rep[f"{k}_steps"] else float("nan")
+                     for k in ("solved", "failed")}
+            print(f"\n{r['agents']} agents, {r['map']}x{r['map']}: at the sampled agent-steps with another agent in view, "
+                  f"the argmax is the {rep['expert']} label at {rep['solved_agree']} of {rep['solved_steps']} "
+                  f"({share['solved']:.3f}) in solved cases and {rep['failed_agree']} of {rep['failed_steps']} "
+                  f"({share['failed']:.3f}) in failed ones; {rep['unlabelled_states']} states without a label")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0 if all(r["passed"] for r in rows) else 1
