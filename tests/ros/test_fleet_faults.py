@@ -84,9 +84,10 @@ def test_killed_policy_node_stays_others_go_on_restarted_it_rejoins(tmp_path, do
         killed_at = statuses[-1].step
 
         # While robot 1 has no policy, an invalid action on its topic is rejected and it stays.
-        # One CI run saw no step for 20 s after the kill (here, one of 34 runs failed after 26 s, output lost). In a two-node check on
-        # this machine, Fast DDS blocked a publisher for about 0.3 s after 5 of 30 SIGKILLs of a subscriber and for
-        # 2 s after 1 of 20. The fleet must go on: within 60 s; a wait over 5 s is reported as a warning.
+        # One CI run saw no step for 20 s after the kill (here, one of 34 runs failed after 26 s, output lost). In
+        # a two-node check on this machine, Fast DDS blocked a publisher for about 0.3 s after 5 of 30 SIGKILLs of a
+        # subscriber and for 2 s after 1 of 20 (docs/FLEET.md, "Faults"). The fleet must go on: within 60 s; a wait
+        # over 5 s is reported as a warning.
         t_kill = time.monotonic()
         probe.spin_until(lambda: statuses[-1].step >= killed_at + 2, 60, "steps after the kill", context=logs)
         if time.monotonic() - t_kill > 5.0:
