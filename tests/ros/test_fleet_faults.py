@@ -72,7 +72,8 @@ def test_killed_policy_node_stays_others_go_on_restarted_it_rejoins(tmp_path, do
     probe.node.create_subscription(FleetStatus, "/fleet/status", statuses.append, 100)
 
     def logs():
-        return "\n".join(f"--- {name} log ---\n{fleet.group.log_text(name)[-2500:]}" for name in ("world", "drive_1", "policy_0"))
+        return "\n".join(f"--- {name} log ---\n{fleet.group.log_text(name)[-2500:]}"
+                         for name in ("world", "drive_1", "policy_0"))
 
     bogus = probe.node.create_publisher(AgentAction, "/robot_1/action", 10)
     fleet.start()
@@ -98,8 +99,9 @@ def test_killed_policy_node_stays_others_go_on_restarted_it_rejoins(tmp_path, do
         while len(tried) < 3:
             target = statuses[-1].step   # the world is collecting this step now
             bogus.publish(AgentAction(step=target, robot_id=1, action=9))
-            closed = probe.spin_until(lambda: next((s for s in statuses if s.step == target + 1 and len(s.outcomes) == 3),
-                                                   None), 10, "the step with the bad action", context=logs)
+            closed = probe.spin_until(
+                lambda: next((s for s in statuses if s.step == target + 1 and len(s.outcomes) == 3), None),
+                10, "the step with the bad action", context=logs)
             tried.append(target)
             if list(closed.outcomes) != [TIMEOUT] * 3:
                 break
