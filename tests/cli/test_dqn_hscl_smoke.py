@@ -174,6 +174,20 @@ def test_a_priority_run_stores_its_channels_and_mining_and_the_ladder_play_them(
     assert out.returncode == (0 if rows[0]["passed"] else 1) and rows[0]["cases"] == 3, out.stderr[-2000:]
 
 
+def test_a_revisit_count_run_mines_and_the_ladder_plays_it_with_the_count(repo_root, tmp_path):
+    run = _run(repo_root, tmp_path, "--run-name", "v", "--still-bins", "4", "--still-count", "revisit",
+               "--greedy-fraction", "0.5", "--stuck-steps", "1", "--stuck-cycles", "--stuck-rollout", "4",
+               "--mine-episodes", "1")
+    assert run.returncode == 0, run.stderr[-3000:]
+    _, cfg, _ = load_model(tmp_path / "runs" / "v" / "last.pt")
+    assert cfg.still_bins == 4 and cfg.still_count == "revisit" and cfg.env_channels()["revisit_cap"] == 3
+    out = subprocess.run([str(repo_root / "scripts" / "ladder"), str(tmp_path / "runs" / "v" / "last.pt"), "--rung", "1",
+                          "--cases", "3", "--json", str(tmp_path / "v.json"), "--stuck", "--no-progress"],
+                         capture_output=True, text=True, timeout=120)
+    rows = json.loads((tmp_path / "v.json").read_text())
+    assert out.returncode == (0 if rows[0]["passed"] else 1) and rows[0]["cases"] == 3, out.stderr[-2000:]
+
+
 @pytest.mark.slow
 def test_a_run_can_start_from_another_runs_weights_of_the_same_network(repo_root, tmp_path):
     first = _run(repo_root, tmp_path, "--run-name", "a", "--total-steps", "4")

@@ -658,6 +658,12 @@ def test_stuck_rollout_needs_greedy_fixed_points():
     with pytest.raises(ValueError, match="stuck_cycles"):
         Args(stuck_cycles=True, greedy_fraction=0.5, stuck_steps=1, still_bins=4).validate()
     Args(stuck_cycles=True, stuck_rollout=16, greedy_fraction=0.5, stuck_steps=1).validate()
+    # the revisit count is the one count MapfEnv.joint_state holds (revisit_cap): cycles and mining allow it
+    Args(stuck_cycles=True, stuck_rollout=16, greedy_fraction=0.5, stuck_steps=1, still_bins=4,
+         still_count="revisit", mine_episodes=2).validate()
+    with pytest.raises(ValueError, match="mine_episodes"):
+        Args(stuck_cycles=True, stuck_rollout=16, greedy_fraction=0.5, stuck_steps=1, still_bins=4,
+             still_count="cell", mine_episodes=2).validate()
     with pytest.raises(ValueError, match="mine_episodes"):
         Args(mine_episodes=2).validate()
 

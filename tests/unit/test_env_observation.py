@@ -340,7 +340,7 @@ def test_deep_copy_plays_on_alone_and_shares_the_fixed_parts(heading):
         ref.reset()
         for a in head + played:
             want = ref.step(a)
-        for key in ("fov", "last_action", "position"):
+        for key in ("fov", "last_action", "position", "revisits"):
             np.testing.assert_array_equal(got[0][key], want[0][key])
         np.testing.assert_array_equal(got[1], want[1])
     assert env.step_count == twin.step_count == 14
@@ -361,3 +361,45 @@ def test_a_deep_copy_of_the_builder_sees_the_agents():
     for key in ("fov", "last_action", "position"):
         np.testing.assert_array_equal(twin.build(starts, [STAY] * 4)[key], builder.build(starts, [STAY] * 4)[key])
     assert builder.build(starts, [STAY] * 4)["fov"][:, 1].any()  # the case has agents in each other's view
+
+
+def test_revisits_count_a_loop_and_the_window_forgets():
+    """revisits: how many of the agent's last REVISIT_WINDOW positions (before this step) held its current cell.
+    A back-and-forth loop raises it on both cells, waiting raises it by one a step, and a visit that has left the
+    window no longer counts; reset() clears it."""
+    from mapf_world.env import REVISIT_WINDOW
+
+    grid = grid_from_text("." * 20)
+    env = MapfEnv(grid, [[0, 0]], [[0, 19]])
+    obs, _ = env.reset()
+    assert obs["revisits"].tolist() == [0]
+    seen = [int(env.step([a])[0]["revisits"][0]) for a in [RIGHT, LEFT, RIGHT, LEFT, STAY, STAY]]
+    assert seen == [0, 1, 1, 2, 3, 4]  # (0,1) new; (0,0) again; (0,1) again; ...; waiting on (0,0) adds one a step
+    assert REVISIT_WINDOW == 16
+    for out, back_count in ((8, 1), (9, 0)):  # to (0,1), `out` cells on and back: (0,1) was at step 1
+        env.reset()
+        for a in [RIGHT] * (1 + out) + [LEFT] * out:
+            obs = env.step([a])[0]
+        assert env.positions.tolist() == [[0, 1]] and env.step_count == 1 + 2 * out
+        assert obs["revisits"].tolist() == [back_count]  # in the last 16 positions (steps 1-16), or not (3-18)
+    env.reset()
+    assert env.observe()["revisits"].tolist() == [0]
+
+
+def test_joint_state_holds_the_capped_revisits_only_when_asked():
+    """A memoryless policy that reads revisits (capped at c, revisit_cap=c) loops for ever only where positions, last
+    actions and the capped counts repeat: joint_state holds them then; without a cap it holds no count at all."""
+    grid = grid_from_text("." * 6)
+    plain, capped = MapfEnv(grid, [[0, 0]], [[0, 5]]), MapfEnv(grid, [[0, 0]], [[0, 5]], revisit_cap=2)
+    for env in (plain, capped):
+        env.reset()
+    keys = {id(plain): [], id(capped): []}
+    for a in [RIGHT, LEFT, RIGHT, LEFT, RIGHT, LEFT, RIGHT, LEFT]:
+        for env in (plain, capped):
+            env.step([a])
+            keys[id(env)].append(env.joint_state())
+    assert keys[id(plain)][1] == keys[id(plain)][3]  # back on (0,0) after LEFT: the same key at once
+    assert keys[id(capped)][1] != keys[id(capped)][3]  # counts 1, 2 differ
+    assert keys[id(capped)][5] == keys[id(capped)][7]  # both capped at 2
+    with pytest.raises(ValueError, match="revisit_cap"):
+        MapfEnv(grid, [[0, 0]], [[0, 5]], revisit_cap=-1)

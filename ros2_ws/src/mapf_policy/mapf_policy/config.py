@@ -13,7 +13,7 @@ from dataclasses import dataclass
 # means and why it matters: mapf_policy/train/expert.py, agent_order.
 EXPERT_ORDERS = ("index", "reversed", "position")
 # NetworkConfig.still_count -> the MapfEnv observation key it reads.
-STILL_KEYS = {"cell": "still", "refused": "refused_run", "contact": "contact_run"}
+STILL_KEYS = {"cell": "still", "refused": "refused_run", "contact": "contact_run", "revisit": "revisits"}
 
 
 def _from_dict(cls, data: dict, what: str):
@@ -91,7 +91,9 @@ class NetworkConfig:
     still_count: str = "cell"
     """What the still input counts (MapfEnv): 'cell', the steps the agent has stood on the same cell (observation
     key 'still'), 'refused', its consecutive refused moves (key 'refused_run'; 0 after a stay or a move), or
-    'contact', the steps it has stood still with the same neighbour cells held by agents (key 'contact_run')."""
+    'contact', the steps it has stood still with the same neighbour cells held by agents (key 'contact_run'), or
+    'revisit', how often its last 16 positions held its current cell (key 'revisits'): a loop of any period raises
+    it, a first visit does not (the thirty-third session's experiment)."""
 
     heading: bool = False
     """Beyond the paper: a seventh fov channel, the cells the other agents face (each one's cell plus its last
@@ -122,9 +124,11 @@ class NetworkConfig:
         return self.in_channels + int(self.heading) + int(self.priority) + 4 * int(self.goal_dirs)
 
     def env_channels(self) -> dict:
-        """MapfEnv keyword arguments that give observations with the channels this network reads."""
+        """MapfEnv keyword arguments that give observations with the channels this network reads, and a joint state
+        (MapfEnv.joint_state) that holds the revisits count as far as this network reads it."""
+        revisit_cap = self.still_bins - 1 if self.still_bins and self.still_count == "revisit" else 0
         return {"heading": self.heading, "heading_refused": self.heading_refused, "priority": self.priority,
-                "goal_dirs": self.goal_dirs}
+                "goal_dirs": self.goal_dirs, "revisit_cap": revisit_cap}
 
     def extra_channels(self) -> list[str]:
         """The fov channels beyond the paper's six that this network reads, as 'the X channel(s) (NetworkConfig.x)':

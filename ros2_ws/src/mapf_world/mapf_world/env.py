@@ -17,6 +17,11 @@ built with NetworkConfig.still_bins > 0 read it, or one of two other counts: `re
 refused moves (0 after a move or a stay), and `contact_run`, the consecutive steps in which it stood still
 with the same non-empty set of cells next to it (4-neighbourhood) held by agents (0 when it moved, when that
 set changed or is empty). An agent can count all three from its own requests, positions and fields of view.
+A fourth count, `revisits` (beyond the paper, issue 20's thirty-third session), is how many of the agent's
+last REVISIT_WINDOW positions before the current step equal its current cell: 0 on a first visit, rising in a
+loop of any period up to the window (waiting on one cell counts too). A network that reads it can tell a loop
+from a first visit, which a memoryless network cannot (its observations repeat with the joint state). With
+`revisit_cap` > 0 the joint state (joint_state) includes the counts capped there, as such a network sees them.
 
 `heading=True` (beyond the paper; off everywhere by default) appends a seventh fov channel: the cells the
 other agents face, each one's cell plus its last requested move (ObservationBuilder.headings); with
@@ -44,6 +49,7 @@ REWARD_STAY_OFF_GOAL = -0.075
 REWARD_FAILED_MOVE = -0.5
 REWARD_FINISH = 3.0
 LAST_ACTION_MODES = ("requested", "executed")
+REVISIT_WINDOW = 16  # steps of each agent's own past positions that the revisits count looks back over
 
 
 class MapfEnv:
@@ -51,7 +57,7 @@ class MapfEnv:
 
     def __init__(self, grid, starts, goals, fov_size: int = 9, max_steps: int = 256, last_action: str = "requested",
                  heading: bool = False, heading_refused: bool = False, priority: bool = False,
-                 goal_dirs: bool = False):
+                 goal_dirs: bool = False, revisit_cap: int = 0):
         # Cells on the map, free, distinct, goals reachable (cheap component labels; the BFS waits for reset()).
         self._grid, self._starts, self._goals = check_instance(grid, starts, goals)
         if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
@@ -65,6 +71,9 @@ class MapfEnv:
         self.heading_refused = bool(heading_refused)
         self.priority = bool(priority)
         self.goal_dirs = bool(goal_dirs)
+        if isinstance(revisit_cap, bool) or not isinstance(revisit_cap, (int, np.integer)) or revisit_cap < 0:
+            raise ValueError(f"revisit_cap must be an integer >= 0, got {revisit_cap!r}")
+        self.revisit_cap = int(revisit_cap)
         if self.heading_refused and not self.heading:
             raise ValueError("heading_refused=True needs heading=True (it says what the heading channel marks)")
         self._dist: np.ndarray | None = None
@@ -75,8 +84,14 @@ class MapfEnv:
         self._still = np.zeros(len(self._starts), dtype=np.int64)
         self._refused_run = np.zeros(len(self._starts), dtype=np.int64)
         self._contact_run = np.zeros(len(self._starts), dtype=np.int64)
+        self._reset_trail()
         self._step = 0
         self._done = True  # until reset()
+
+    def _reset_trail(self) -> None:
+        # _trail[k % REVISIT_WINDOW] is every agent's position before step k + 1; (-1, -1) where no step was taken.
+        self._trail = np.full((REVISIT_WINDOW, len(self._starts), 2), -1, dtype=self._starts.dtype)
+        self._revisits = np.zeros(len(self._starts), dtype=np.int64)
 
     # The instance's fixed parts, built once and never written after: a copy of the env shares them.
     _SHARED = ("_grid", "_starts", "_goals", "_dist", "_builder")
@@ -140,15 +155,19 @@ class MapfEnv:
 
     def joint_state(self) -> bytes:
         """Everything the next observations are built from (positions, executed and requested last actions; the
-        still counts aside), as a hashable key: a deterministic policy that sees a joint state again loops for ever."""
-        return self._positions.tobytes() + self._last_actions.tobytes() + self._requested.tobytes()
+        still counts aside; the revisits counts capped at revisit_cap when it is > 0), as a hashable key: a
+        deterministic policy that reads no more than that and sees a joint state again loops for ever."""
+        key = self._positions.tobytes() + self._last_actions.tobytes() + self._requested.tobytes()
+        if self.revisit_cap:
+            key += np.minimum(self._revisits, self.revisit_cap).tobytes()
+        return key
 
     def on_goal(self) -> np.ndarray:
         return np.all(self._positions == self._goals, axis=1)
 
     def observe(self) -> dict:
-        """fov, last_action, position (ObservationBuilder.build); still and refused_run, (N,) counts of steps on the
-        same cell and of consecutive refused moves."""
+        """fov, last_action, position (ObservationBuilder.build); still, refused_run, contact_run and revisits: (N,)
+        counts (module docstring)."""
         obs = self.observation_builder.build(self._positions, self._last_actions)
         if self.heading:
             facing = self.observation_builder.headings(
@@ -161,7 +180,8 @@ class MapfEnv:
         if self.goal_dirs:
             obs["fov"] = np.concatenate([obs["fov"], self.observation_builder.goal_directions(self._positions)], axis=1)
         return obs | {
-            "still": self._still.copy(), "refused_run": self._refused_run.copy(), "contact_run": self._contact_run.copy()}
+            "still": self._still.copy(), "refused_run": self._refused_run.copy(), "contact_run": self._contact_run.copy(),
+            "revisits": self._revisits.copy()}
 
     # --- gymnasium-style API --------------------------------------------------------------------
     def reset(self) -> tuple[dict, dict]:
@@ -172,6 +192,7 @@ class MapfEnv:
         self._still = np.zeros(self.n_agents, dtype=np.int64)
         self._refused_run = np.zeros(self.n_agents, dtype=np.int64)
         self._contact_run = np.zeros(self.n_agents, dtype=np.int64)
+        self._reset_trail()
         self._step = 0
         on_goal = self.on_goal()
         # If every agent starts on its goal the case is solved in 0 steps: info["success"] is True
@@ -194,6 +215,8 @@ class MapfEnv:
         before, after = _contacts(self._positions), _contacts(new_pos)
         same = ~moved & np.all(before == after, axis=1) & after.any(axis=1)
         self._contact_run = np.where(same, self._contact_run + 1, 0)
+        self._trail[self._step % REVISIT_WINDOW] = self._positions
+        self._revisits = np.all(self._trail == new_pos[None], axis=2).sum(axis=0)
         self._positions = new_pos
         self._last_actions = np.where(failed, STAY, acts) if self.last_action_mode == "executed" else acts
         self._requested = acts.copy()

@@ -81,7 +81,9 @@ class Args:
     (NetworkConfig.still_bins); 0: not (the paper's inputs)."""
     still_count: str = "cell"
     """What that count is (NetworkConfig.still_count): 'cell' (steps on the same cell), 'refused' (consecutive
-    refused moves) or 'contact' (steps standing still beside the same unmoved agents)."""
+    refused moves), 'contact' (steps standing still beside the same unmoved agents) or 'revisit' (times the agent's
+    last 16 positions held its current cell; the only count the rollout search and mining allow, MapfEnv.joint_state
+    holds it)."""
     heading: bool = False
     """Beyond the paper: the fov gets a seventh channel, the cells the other agents face (NetworkConfig.heading,
     MapfEnv(heading=True)); False: the paper's six channels."""
@@ -330,18 +332,20 @@ class Args:
         need(not self.rollout_yielding or (self.stuck_rollout > 0 and self.priority),
              "rollout_yielding needs stuck_rollout > 0 and priority (the order it yields by is the priority channel's)")
         need(self.mine_episodes >= 0, f"mine_episodes must be >= 0, got {self.mine_episodes}")
-        need(not self.mine_episodes or (self.stuck_rollout > 0 and not self.still_bins and not self.recurrent),
-             "mine_episodes needs stuck_rollout > 0 (its labeller), and no still input or memory (stuck_cycles)")
+        countable = not self.still_bins or self.still_count == "revisit"  # joint_state holds only that count
+        need(not self.mine_episodes or (self.stuck_rollout > 0 and countable and not self.recurrent),
+             "mine_episodes needs stuck_rollout > 0 (its labeller), and no memory and no still input but the revisit "
+             "count (stuck_cycles)")
         need(0 <= self.mined_batch_share < 1, f"mined_batch_share must be in [0, 1), got {self.mined_batch_share}")
         need(not self.mined_batch_share or self.mine_episodes > 0, "mined_batch_share needs mine_episodes > 0")
         need(not self.stuck_rollout or (self.stuck_steps >= 1 and self.greedy_fraction > 0 and not self.stuck_value
                                         and not self.stuck_rescue and not self.recurrent),
              "stuck_rollout needs greedy_fraction > 0 and stuck_steps >= 1, and none of stuck_value, stuck_rescue, "
              "recurrent")
-        need(not self.stuck_cycles or (self.stuck_steps >= 1 and self.greedy_fraction > 0 and not self.still_bins
+        need(not self.stuck_cycles or (self.stuck_steps >= 1 and self.greedy_fraction > 0 and countable
                                        and not self.recurrent),
-             "stuck_cycles needs greedy_fraction > 0 and stuck_steps >= 1, and no still input or memory (their "
-             "observations are not a function of the joint state)")
+             "stuck_cycles needs greedy_fraction > 0 and stuck_steps >= 1, and no memory and no still input but the "
+             "revisit count (the others' observations are not a function of the joint state)")
         need(not self.stuck_rescue or (self.stuck_steps >= 1 and self.greedy_fraction > 0 and not self.stuck_value),
              "stuck_rescue needs greedy_fraction > 0 and stuck_steps >= 1, and not stuck_value (which ends the episode there)")
         need(self.blocking_penalty <= 0, f"blocking_penalty is a penalty: must be <= 0, got {self.blocking_penalty}")
