@@ -65,7 +65,10 @@ def test_the_env_appends_four_channels_last_and_follows_the_moves():
 def test_a_goal_dirs_network_reads_four_more_channels_and_has_no_robot_export(tmp_path):
     cfg = NetworkConfig(dueling=True, heading=True, priority=True, goal_dirs=True)
     assert cfg.fov_channels == 12 and NetworkConfig(goal_dirs=True).fov_channels == 10
-    assert cfg.env_channels() == {"heading": True, "heading_refused": False, "priority": True, "goal_dirs": True}
+    assert cfg.env_channels() == {"heading": True, "heading_refused": False, "priority": True, "goal_dirs": True,
+                                  "revisit_cap": 0}
+    revisit = NetworkConfig(goal_dirs=True, still_bins=4, still_count="revisit")
+    assert revisit.env_channels()["revisit_cap"] == 3  # the counts the network tells apart: 0, 1, 2, 3 or more
     net, without = QNetwork(cfg), QNetwork(NetworkConfig(dueling=True, heading=True, priority=True))
     # Four more input channels: 4 x 64 x 3 x 3 weights of the first conv, and the 1x1 self-attention maps 8x8 -> 12x12.
     assert count_parameters(net) - count_parameters(without) == 4 * 64 * 9 + 3 * (144 - 64)

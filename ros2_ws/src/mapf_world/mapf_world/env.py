@@ -156,7 +156,11 @@ class MapfEnv:
     def joint_state(self) -> bytes:
         """Everything the next observations are built from (positions, executed and requested last actions; the
         still counts aside; the revisits counts capped at revisit_cap when it is > 0), as a hashable key: a
-        deterministic policy that reads no more than that and sees a joint state again loops for ever."""
+        deterministic policy that reads no more than that and sees a joint state again loops for ever. With
+        revisit_cap the key is a close reading, not an exact one: the next counts depend on the last REVISIT_WINDOW
+        positions, which the key does not hold, so a repeat before the loop has filled the window may be followed
+        by other counts (a greedy stretch then ends a few steps early; once a loop has gone round for REVISIT_WINDOW
+        steps, its counts repeat with it, for ever)."""
         key = self._positions.tobytes() + self._last_actions.tobytes() + self._requested.tobytes()
         if self.revisit_cap:
             key += np.minimum(self._revisits, self.revisit_cap).tobytes()
