@@ -45,6 +45,7 @@ def test_dqn_hscl_logs_what_it_learns_and_resumes(repo_root, tmp_path):
         assert float(r["hscl_weight"]) > 0 and float(r["learner_steps_per_s"]) > 0
         assert -1.0 <= float(r["q_return_corr"]) <= 1.0 and float(r["td_abs"]) >= 0
         assert r["agreement_meet"] == "" or 0.0 <= float(r["agreement_meet"]) <= 1.0  # empty: no agents met
+        assert r["contact_share"] == r["agreement_contact"] == ""  # no priority channel: who comes first is unseen
         assert 0 <= int(r["blocker_move_labels"]) <= int(r["blocker_rows"])
         assert 0 <= int(r["blocker_states"]) <= int(r["blocker_rows"])
     evals = _rows(run / "eval.csv")
@@ -167,6 +168,9 @@ def test_a_priority_run_stores_its_channels_and_mining_and_the_ladder_play_them(
     _, cfg, meta = load_model(tmp_path / "runs" / "p" / "last.pt")
     assert cfg.priority and cfg.heading and cfg.goal_dirs and cfg.fov_channels == 12
     assert meta["train_args"]["priority"] is True and meta["train_args"]["goal_dirs"] is True
+    for r in _rows(tmp_path / "runs" / "p" / "train.csv"):  # rows touching an earlier agent (contact_rows)
+        assert 0.0 <= float(r["contact_share"]) <= 1.0
+        assert r["agreement_contact"] == "" or 0.0 <= float(r["agreement_contact"]) <= 1.0
     out = subprocess.run([str(repo_root / "scripts" / "ladder"), str(tmp_path / "runs" / "p" / "last.pt"), "--rung", "1",
                           "--cases", "3", "--json", str(tmp_path / "p.json"), "--stuck", "--no-progress"],
                          capture_output=True, text=True, timeout=120)

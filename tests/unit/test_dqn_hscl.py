@@ -7,8 +7,8 @@ import torch
 
 from mapf_policy.config import NetworkConfig
 from mapf_policy.network import QNetwork, count_parameters
-from mapf_policy.train.dqn_hscl import (Args, Replay, episode_rows, losses, meeting_rows, mixed_sample, parse_stage,
-                                         play_episode)
+from mapf_policy.train.dqn_hscl import (Args, Replay, contact_rows, episode_rows, losses, meeting_rows, mixed_sample,
+                                         parse_stage, play_episode)
 from mapf_world.env import MapfEnv
 from mapf_world.grid import STAY
 
@@ -723,6 +723,18 @@ def test_best_deviation_with_yielding_moves_only_the_agent_that_sees_an_earlier_
     yielded = best_deviation(_heuristic_greedy, env, np.array([STAY, RIGHT]), 20, 2, yielding=True)
     assert free is not None and free[0] == 0  # unrestricted, the parked agent steps aside (solved soonest)
     assert yielded is not None and yielded[0] == 1  # the later agent goes round instead
+
+
+def test_contact_rows_are_off_goal_agents_touching_an_earlier_agent():
+    grid = np.zeros((12, 12), dtype=np.int8)
+    # 0 and 1 side by side (1 touches the earlier 0; 0 touches only a later agent); 2 diagonal to 1 (touches no one);
+    # 3 below 0, on its goal (touches 0 but is home); 4 far from all
+    starts, goals = [(2, 2), (2, 3), (3, 4), (3, 2), (10, 10)], [(6, 2), (8, 4), (8, 8), (3, 2), (10, 6)]
+    env = MapfEnv(grid, starts, goals, max_steps=8, heading=True, priority=True)
+    obs, _ = env.reset()
+    fov = torch.from_numpy(np.asarray(obs["fov"], dtype=np.float32))
+    cfg = NetworkConfig(heading=True, priority=True)
+    assert contact_rows(fov, cfg.in_channels + int(cfg.heading)).tolist() == [False, True, False, False, False]
 
 
 def test_meeting_rows_are_off_goal_agents_with_another_in_view():
