@@ -1022,8 +1022,8 @@ def greedy_success(forward, cases: list, last_action: str, max_steps: int) -> tu
 
 TRAIN_COLUMNS = ("step", "stage", "episodes", "l_dqn", "l_hscl", "hscl_weight", "dqn_share", "td_abs", "td_refused",
                  "refused_minus_stay", "refused_rows", "adv_norm", "q_mean", "mc_return_mean", "q_return_corr", "agreement",
-                 "agreement_meet", "meet_share", "agreement_contact", "contact_share", "train_success", "train_steps", "mean_team", "samples_per_s",
-                 "learner_steps_per_s", "env_rows_per_s",
+                 "agreement_meet", "meet_share", "agreement_contact", "contact_share", "train_success", "train_steps",
+                 "mean_team", "samples_per_s", "learner_steps_per_s", "env_rows_per_s",
                  "epsilon", "blocked_share", "rescued_episodes", "blocker_rows", "blocker_move_labels", "blocker_states",
                  "deviations", "mined_labels", "pp_label_share", "elapsed_s")
 EVAL_COLUMNS = ("step", "stage", "agents", "size", "success_rate", "average_step", "ema_success_rate", "ema_average_step")
