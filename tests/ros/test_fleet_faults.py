@@ -9,7 +9,7 @@ import warnings
 
 import pytest
 
-from fleet_helpers import Fleet, GraphProbe
+from fleet_helpers import DATA, Fleet, GraphProbe
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.filterwarnings("ignore::DeprecationWarning")]
 
@@ -65,8 +65,11 @@ def test_world_stall_while_robots_answer_is_not_a_timeout(tmp_path, domain_id, a
 def test_killed_policy_node_stays_others_go_on_restarted_it_rejoins(tmp_path, domain_id, any_model):
     from mapf_msgs.msg import AgentAction, FleetStatus
 
+    # Robot 1 goes corner to corner (8 steps): on fleet_small.scen every robot is home after 3 steps, and one run
+    # (session 35) finished there before the kill after step 2 could take effect, so no step came after it.
     fleet = Fleet(tmp_path, domain_id, any_model,
-                  world=dict(max_steps=200, action_timeout_s=0.4, settle_timeout_s=20.0))
+                  world=dict(max_steps=200, action_timeout_s=0.4, settle_timeout_s=20.0,
+                             scen_file=str(DATA / "fleet_small_long.scen")))
     probe = GraphProbe(domain_id)
     statuses = []
     probe.node.create_subscription(FleetStatus, "/fleet/status", statuses.append, 100)

@@ -735,6 +735,32 @@ def test_contact_rows_are_off_goal_agents_touching_an_earlier_agent():
     fov = torch.from_numpy(np.asarray(obs["fov"], dtype=np.float32))
     cfg = NetworkConfig(heading=True, priority=True)
     assert contact_rows(fov, cfg.in_channels + int(cfg.heading)).tolist() == [False, True, False, False, False]
+    assert Args(heading=True, priority=True).priority_channel() == cfg.in_channels + int(cfg.heading)
+
+
+def test_contact_weight_weighs_the_rows_touching_an_earlier_agent_in_the_ce_term():
+    args = Args(imitation="ce", heading=True, priority=True, contact_weight=5.0)
+    pc = args.priority_channel()
+    q = torch.tensor([[0.3, 0.1, 0.0, -0.2, 0.5], [1.0, 1.2, 0.9, 0.8, 1.1], [0.0, 0.4, 0.0, 0.0, 0.0]])
+    fov = torch.zeros(3, pc + 1, 9, 9)
+    fov[:, 2, 4, 4] = 1.0  # all three off their goal
+    fov[1, pc, 3, 4] = 1.0  # row 1: an earlier agent in the cell above, a contact row
+    fov[0, pc, 3, 3] = 1.0  # row 0: an earlier agent diagonal, not a contact
+    fov[2, pc, 4, 5] = 1.0  # row 2 touches one but has no label
+    batch = {"action": torch.tensor([0, 0, 0]), "ret": torch.zeros(3), "boot_gamma": torch.zeros(3),
+             "expert": torch.tensor([4, 2, -1]), "blocker": torch.tensor([False, False, False]), "fov": fov}
+    per_row = [float(-torch.log_softmax((q[i] - q[i].mean()) / 0.1, dim=0)[k]) for i, k in ((0, 4), (1, 2))]
+    _, weighted, _ = losses(q, torch.zeros(3, 5), batch, args)
+    assert float(weighted) == pytest.approx((per_row[0] + 5 * per_row[1]) / 6, rel=1e-5)
+    _, plain, _ = losses(q, torch.zeros(3, 5), batch, Args(imitation="ce", heading=True, priority=True))
+    assert float(plain) == pytest.approx((per_row[0] + per_row[1]) / 2, rel=1e-5)
+    args.validate()
+    with pytest.raises(ValueError, match="contact_weight"):
+        Args(imitation="ce", heading=True, contact_weight=5.0).validate()  # no priority channel to read
+    with pytest.raises(ValueError, match="contact_weight"):
+        Args(heading=True, priority=True, contact_weight=5.0).validate()  # the HSCL term
+    with pytest.raises(ValueError, match="contact_weight"):
+        Args(imitation="ce", heading=True, priority=True, contact_weight=0.0).validate()
 
 
 def test_meeting_rows_are_off_goal_agents_with_another_in_view():
