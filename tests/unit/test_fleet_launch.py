@@ -46,6 +46,23 @@ def test_process_group_stops_and_measures(tmp_path):
     assert read_usage(group.procs["sleeper"].pid) is None
 
 
+def test_an_exited_process_not_yet_reaped_has_no_usage():
+    # A zombie's /proc status has no VmRSS line; it reads as no reading, not as an RSS of 0.
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    try:
+        end = time.monotonic() + 30
+        while Path(f"/proc/{proc.pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z":
+            assert time.monotonic() < end, "the child did not exit"
+            time.sleep(0.02)
+        assert read_usage(proc.pid) is None
+    finally:
+        proc.wait()
+
+
 def test_a_process_that_ignores_sigint_and_sigterm_leaves_its_stacks_in_its_log_before_sigkill(tmp_path):
     import sys
     import time

@@ -136,7 +136,11 @@ def read_usage(pid: int) -> Optional[Usage]:
         key, _, rest = line.partition(":")
         if key in ("VmRSS", "VmHWM"):
             mem[key] = int(rest.split()[0]) / 1024.0
-    return Usage(cpu, mem.get("VmRSS", 0.0), mem.get("VmHWM", 0.0))
+    if "VmRSS" not in mem:
+        # An exiting process (or a zombie not yet reaped) has released its memory and its status has no Vm lines:
+        # no reading, rather than an RSS of 0 that a soak's last sample of a world node once reported.
+        return None
+    return Usage(cpu, mem["VmRSS"], mem.get("VmHWM", mem["VmRSS"]))
 
 
 # Sent to a process still running after SIGINT and SIGTERM, before SIGKILL: every node registers it to print
