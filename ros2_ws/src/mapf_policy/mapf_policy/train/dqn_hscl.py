@@ -414,7 +414,6 @@ class Args:
                              heading_refused=self.heading_refused, priority=self.priority, goal_dirs=self.goal_dirs,
                              **ABLATIONS.get(self.variant, {}))
 
-
     def priority_channel(self) -> int:
         """The fov channel that marks the earlier agents (with `priority`): after the base channels and the heading."""
         ncfg = self.network_config()
