@@ -162,12 +162,15 @@ def test_a_heading_run_stores_seven_channels_and_the_ladder_plays_it_with_them(r
 
 
 def test_a_priority_run_stores_its_channels_and_mining_and_the_ladder_play_them(repo_root, tmp_path):
+    # --augment too: its batches (mined rows among them) are turned through all twelve channels
     run = _run(repo_root, tmp_path, "--run-name", "p", "--priority", "--heading", "--goal-dirs", "--greedy-fraction",
-               "0.5", "--stuck-steps", "1", "--stuck-cycles", "--stuck-rollout", "4", "--mine-episodes", "1")
+               "0.5", "--stuck-steps", "1", "--stuck-cycles", "--stuck-rollout", "4", "--mine-episodes", "1",
+               "--mined-batch-share", "0.25", "--augment")
     assert run.returncode == 0, run.stderr[-3000:]
     _, cfg, meta = load_model(tmp_path / "runs" / "p" / "last.pt")
     assert cfg.priority and cfg.heading and cfg.goal_dirs and cfg.fov_channels == 12
     assert meta["train_args"]["priority"] is True and meta["train_args"]["goal_dirs"] is True
+    assert meta["train_args"]["augment"] is True
     for r in _rows(tmp_path / "runs" / "p" / "train.csv"):  # rows touching an earlier agent (contact_rows)
         assert 0.0 <= float(r["contact_share"]) <= 1.0
         assert r["agreement_contact"] == "" or 0.0 <= float(r["agreement_contact"]) <= 1.0

@@ -52,6 +52,7 @@ from mapf_policy.network import QNetwork, network_inputs, still_onehot
 from mapf_policy.train.demos import ACTOR_STREAM, MINE_STREAM, VALID_STREAM, generated_cases, instance_rng
 from mapf_policy.train.expert import ExpertFailed, make_oracle
 from mapf_policy.train.log import CsvLog, read_csv, truncate_log
+from mapf_policy.train.symmetry import SYMMETRIES, Augmenter, direction_blocks
 from mapf_world.env import LAST_ACTION_MODES, MapfEnv
 from mapf_world.grid import DELTAS, STAY
 from mapf_world.heuristics import distance_maps
@@ -102,6 +103,12 @@ class Args:
     False: the paper's feed-forward network, trained on single rows."""
     sequence_length: int = 8
     """Steps per training sequence of a recurrent network (the batch holds batch_size / sequence_length of them)."""
+    augment: bool = False
+    """Beyond the paper: each training row is seen turned or mirrored by one of the square grid's eight symmetries,
+    drawn per row and step (symmetry.py: fov pictures, direction channels, actions, labels and position turn
+    together). The rules, rewards and expert do not depend on direction, so every turned row is a row of the turned
+    instance: eight times the distinct rows for the same episodes. Held-out agreement at 16 agents is limited by
+    distinct rows, not capacity (issue 20, thirty-first session). False: rows as played."""
     total_steps: int = 20_000
     """Learner gradient steps of the whole run."""
     session_minutes: float = 0.0
@@ -390,6 +397,8 @@ class Args:
         need(self.resume_refill >= 0, f"resume_refill must be >= 0, got {self.resume_refill}")
         need(0 <= self.advantage_learning < 1, f"advantage_learning must lie in [0, 1), got {self.advantage_learning}")
         need(not (self.recurrent and self.advantage_learning > 0), "advantage_learning is not implemented for recurrent")
+        need(not (self.recurrent and self.augment), "augment turns single rows: a recurrent network's sequences would "
+             "need one symmetry per sequence, which is not implemented")
         for name in ("lr", "grad_clip", "temperature", "replay_ratio", "huber_delta", "expert_time_limit"):
             need(getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")
         need(self.expert_order in EXPERT_ORDERS, f"expert_order must be one of {EXPERT_ORDERS}, got {self.expert_order!r}")
@@ -449,6 +458,7 @@ ROW_SPECS = {  # one agent's n-step transition; fov values are 0/1 (7 channels w
     # Where the row sits, for sequences (recurrent): row (t, i) of episode e is followed by row (t + 1, i) of e,
     # n_agents rows later; m is its bootstrap's distance (next_* is the observation at t + m).
     "episode": (np.int64, ()), "m": (np.int8, ()), "n_agents": (np.int16, ()),
+    "map_shape": (np.int16, (2,)),  # (height, width) of the row's map, for Args.augment; 0, 0 where not given
 }
 # A recurrent network's rows also hold "h_in", the memory before the step (float16, (hidden_features,)).
 
@@ -742,7 +752,7 @@ def distinct_observations(rows: dict, mask: np.ndarray) -> int:
 
 def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasible_labels: bool = False,
                  still_key: str = "still", goals: np.ndarray | None = None, episode: int = 0,
-                 fixed_point: bool = False) -> dict:
+                 fixed_point: bool = False, map_shape: tuple = (0, 0)) -> dict:
     """Replay rows of every agent and step: n-step return, bootstrap state and discount, Monte Carlo return.
 
     Row (t, i): ret = sum_{k<m} gamma^k r[t+k, i] with m = min(n, T - t); bootstrap from obs[t + m] with
@@ -752,7 +762,8 @@ def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasi
     episode (for sequences); a recurrent actor's steps also give "h_in", the memory before each step. With
     `fixed_point` (the episode ended at a fixed point of the greedy team, Args.stuck_value), the rows whose bootstrap
     state is the last one bootstrap from its exact value instead: each agent's last reward r repeated for ever,
-    r / (1 - gamma), added to the return with the bootstrap's discount, and no network bootstrap."""
+    r / (1 - gamma), added to the return with the bootstrap's discount, and no network bootstrap. `map_shape`: the
+    map's (height, width), which turning a position needs (Args.augment)."""
     reward = np.stack(steps["reward"]).astype(np.float64)  # (T, N)
     t_len, n_agents = reward.shape
     mc = np.zeros_like(reward)
@@ -798,6 +809,7 @@ def episode_rows(steps: dict, terminated: bool, gamma: float, n_step: int, feasi
         "episode": np.full(t_len * n_agents, episode, dtype=np.int64),
         "m": flat(np.repeat(m[:, None], n_agents, 1).astype(np.int8)),
         "n_agents": np.full(t_len * n_agents, n_agents, dtype=np.int16),
+        "map_shape": np.tile(np.asarray(map_shape, dtype=np.int16), (t_len * n_agents, 1)),
     }
 
 
@@ -859,7 +871,7 @@ class Replay:
         b = {k: torch.from_numpy(v[idx]) for k, v in self.data.items()}
         t = {"action": b["action"].long(), "expert": b["expert"].long(), "refused": b["refused"], "solved": b["solved"],
              "blocker": b["blocker"], "still": b["still"].long(), "next_still": b["next_still"].long(), "index": idx,
-             "weight": weight, "m": b["m"].long(), "episode": b["episode"]}
+             "weight": weight, "m": b["m"].long(), "episode": b["episode"], "map_shape": b["map_shape"].long()}
         if "h_in" in b:
             t["h_in"] = b["h_in"].float()
         for k in ("ret", "boot_gamma", "mc_return"):
@@ -1087,6 +1099,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
     replay = Replay(args.replay_capacity, args.priority_alpha, args.priority_beta,
                     hidden=ncfg.hidden_features if args.recurrent else 0, channels=ncfg.fov_channels)
     mined_replay = Replay(MINED_CAPACITY, channels=ncfg.fov_channels) if args.mined_batch_share > 0 else None
+    augmenter = Augmenter(ncfg.fov_size, ncfg.fov_channels, direction_blocks(ncfg)) if args.augment else None
     valid = {k: generated_cases(args.seed, VALID_STREAM, [a], args.eval_cases, s, args.density)
              for k, (a, s) in enumerate(stages)}
     train_log, eval_log = CsvLog(run_dir / "train.csv", TRAIN_COLUMNS), CsvLog(run_dir / "eval.csv", EVAL_COLUMNS)
@@ -1129,7 +1142,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                                         stuck_cycles=args.stuck_cycles, yielding=args.rollout_yielding)
             rows = episode_rows(steps, stats["success"], args.gamma, args.n_step, args.feasible_labels,
                                 STILL_KEYS[args.still_count], goals=None if args.parked_labels else env.goals,
-                                episode=state["episodes"], fixed_point=stats["fixed_point"])
+                                episode=state["episodes"], fixed_point=stats["fixed_point"], map_shape=env.grid.shape)
             stats["pp_states"] = getattr(oracle, "pp_states", 0)
             stats["odrm_states"] = getattr(oracle, "odrm_states", 0)
             # Look inside: the blockers' rows as stored, and how many carry a move label (the expert's way out).
@@ -1147,7 +1160,8 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             for m_steps, m_stats in mine(act_q, m_envs, args.stuck_rollout, rng, args.rollout_yielding):
                 if m_stats["deviations"]:
                     m_rows = episode_rows(m_steps, m_stats["success"], args.gamma, args.n_step, False,
-                                          STILL_KEYS[args.still_count], episode=state["episodes"])
+                                          STILL_KEYS[args.still_count], episode=state["episodes"],
+                                          map_shape=(m_size, m_size))
                     keep = m_rows["expert"] >= 0
                     (replay if mined_replay is None else mined_replay).add({k: v[keep] for k, v in m_rows.items()})
                     stats["mined_labels"] += int(keep.sum())
@@ -1167,6 +1181,8 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                     q, q_target, n_main = q.float(), None, len(batch["index"])
                 else:
                     batch, n_main = mixed_sample(replay, mined_replay, args.batch_size, args.mined_batch_share, rng)
+                    if augmenter is not None:  # beyond the paper: each row in one of the grid's 8 orientations
+                        batch = augmenter(batch, torch.from_numpy(rng.integers(0, len(SYMMETRIES), len(batch["action"]))))
                     still = (still_onehot(batch["still"], args.still_bins),) if args.still_bins else ()
                     next_still = (still_onehot(batch["next_still"], args.still_bins),) if args.still_bins else ()
                     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=args.bf16):
