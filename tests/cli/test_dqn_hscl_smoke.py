@@ -116,6 +116,14 @@ def test_ladder_reports_a_rung_and_fails_an_untrained_model(repo_root, tmp_path)
     agree = two_rows[0]["agreement"]
     assert 0 <= agree["solved_agree"] <= agree["solved_steps"] and 0 <= agree["failed_agree"] <= agree["failed_steps"]
     assert agree["expert"] in ("odrmstar", "prioritized") and "with another agent in view" in two.stdout
+    for kind in ("solved", "failed"):  # the contact split covers every counted row; ties only add agreement
+        rows = [c for k, c in agree["by_contact"].items() if k.startswith(kind)]
+        assert sum(c["rows"] for c in rows) == agree[f"{kind}_steps"]
+        assert sum(c["agree"] for c in rows) == agree[f"{kind}_agree"]
+        if agree["expert"] == "prioritized":
+            assert agree[f"{kind}_agree"] <= agree[f"{kind}_agree_tied"] <= agree[f"{kind}_steps"]
+        else:
+            assert agree[f"{kind}_agree_tied"] is None
     wrong = subprocess.run([str(repo_root / "scripts" / "ladder"), str(model), "--rung", "2", "--agents", "3"],
                            capture_output=True, text=True, timeout=60)
     assert wrong.returncode == 2 and "none of --agents [3]" in wrong.stderr
@@ -298,6 +306,16 @@ def test_a_prioritized_expert_run_logs_the_share_of_states_it_labelled(repo_root
     assert run.returncode == 0, run.stderr[-3000:]
     shares = [float(r["pp_label_share"]) for r in _rows(tmp_path / "runs" / "pp" / "train.csv")]
     assert shares and all(0.0 <= s <= 1.0 for s in shares) and max(shares) > 0.0
+    # The ladder's agreement with this expert also counts moves its plan ranks equal to the label.
+    out = subprocess.run([str(repo_root / "scripts" / "ladder"), str(tmp_path / "runs" / "pp" / "last.pt"), "--rung", "4",
+                          "--agents", "4", "--cases", "1", "--json", str(tmp_path / "pp.json"), "--agreement",
+                          "--no-progress"], capture_output=True, text=True, timeout=300)
+    agree = json.loads((tmp_path / "pp.json").read_text())[0]["agreement"]
+    assert agree["expert"] == "prioritized" and "ranks equal to its label" in out.stdout, out.stderr[-2000:]
+    steps = agree["solved_steps"] + agree["failed_steps"]
+    assert steps > 0 and agree["solved_agree"] + agree["failed_agree"] <= \
+        agree["solved_agree_tied"] + agree["failed_agree_tied"] <= steps
+    assert sum(c["rows"] for c in agree["by_contact"].values()) == steps
     bad = _run(repo_root, tmp_path, "--run-name", "pp2", "--expert", "prioritized", "--expert-order", "position")
     assert bad.returncode == 2 and "index order" in bad.stderr
 

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from mapf_world.instances import generate_instance
-from mapf_world.planners.prioritized import PrioritizedOracle, plan_prioritized
+from mapf_world.planners.prioritized import PrioritizedOracle, first_move_costs, plan_prioritized
 from mapf_world.rules import resolve_moves
 from mapf_world.planners.result import plan_actions
 
@@ -100,3 +100,46 @@ def test_expert_prioritized_falls_back_to_odrmstar_where_it_finds_no_plan():
     assert oracle.odrm_states == 1 and oracle.pp_states == 0 and a.shape == (2,)
     with pytest.raises(ValueError, match="index order"):
         make_oracle("prioritized", grid, goals, distance_maps(grid, goals), 10.0, 2.0, order="position")
+
+
+def test_first_move_costs_in_a_corridor_with_a_bay():
+    grid = np.array([[1, 1, 1, 0, 1],
+                     [0, 0, 0, 0, 0],
+                     [1, 1, 1, 1, 1]], dtype=np.uint8)
+    starts, goals = np.array([[1, 0], [1, 4]]), np.array([[1, 4], [1, 0]])
+    costs = first_move_costs(grid, starts, goals)
+    # Agent 0 (first) ignores agent 1: right is its 4-step path, stay costs one more, the rest are walls.
+    assert costs[0].tolist() == [5, -1, -1, -1, 4]
+    # Agent 1 plans around agent 0 going right and must wait in the bay (0, 3) while it passes. Going left first
+    # and waiting once first tie: both reach the bay before agent 0 takes (1, 3) at t=3 (following it in is
+    # legal), leave it behind agent 0 at t=4 and are home at t=7. The label is one of the two.
+    assert costs[1].tolist() == [7, -1, -1, 7, -1]
+    assert costs.min(axis=1, where=costs >= 0, initial=10**9).tolist() == [4, 7]  # the plan's own lengths
+
+
+def test_first_move_costs_agree_with_the_plan_and_its_label_on_generated_cases():
+    rng = np.random.default_rng(3)
+    checked = 0
+    for _ in range(20):
+        inst = generate_instance(rng, size=12, density=0.3, n_agents=6)
+        res = plan_prioritized(inst.grid, inst.starts, inst.goals)
+        costs = first_move_costs(inst.grid, inst.starts, inst.goals)
+        if not res.solved:
+            continue
+        checked += 1
+        label = plan_actions(res.positions)[0]
+        moved = res.positions[:, :, None, :] != res.positions[-1][None, :, None, :]
+        lengths = np.array([np.flatnonzero(moved[:, i, 0].any(-1)).max(initial=-1) + 1 for i in range(6)])
+        for i in range(6):
+            legal = costs[i] >= 0
+            assert costs[i, label[i]] == costs[i][legal].min() == lengths[i]  # the label is among the cheapest
+    assert checked >= 10
+
+
+def test_first_move_costs_of_an_agent_on_its_goal_and_of_walls_and_bad_input():
+    grid = np.zeros((3, 3), dtype=np.uint8)
+    grid[1, 1] = 1
+    costs = first_move_costs(grid, np.array([[0, 0]]), np.array([[0, 0]]))
+    assert costs.tolist() == [[0, -1, 2, -1, 2]]  # staying keeps it there; a step out and back costs 2
+    with pytest.raises(ValueError, match="agents"):
+        first_move_costs(grid, np.array([[0, 0], [2, 2]]), np.array([[0, 0]]))

@@ -30,9 +30,10 @@ from mapf_policy.network import network_inputs
 from mapf_policy.train.demos import COMPARE_STREAM, generated_cases
 from mapf_policy.train.dqn_hscl import RecurrentActor, acting, greedy_outcomes, play_episode, pushed_blockers
 from mapf_world.env import MapfEnv
-from mapf_world.grid import STAY
+from mapf_world.grid import DELTAS, STAY
 from mapf_world.observation import N_CHANNELS
 from mapf_world.planners.odrmstar import OBJECTIVES
+from mapf_world.planners.prioritized import first_move_costs
 
 # rung -> (what, [(agents, map side, success bar)])
 RUNGS = {
@@ -207,6 +208,18 @@ def interacting(positions: np.ndarray, goals: np.ndarray, radius: int) -> np.nda
     return (gap <= radius).any(axis=1) & ~(positions == np.asarray(goals)).all(axis=1)
 
 
+CONTACTS = ("earlier agent adjacent", "only later agents adjacent", "nobody adjacent")
+
+
+def contact_split(positions: np.ndarray, agent: int) -> tuple[str, set]:
+    """Which of CONTACTS an agent's row is (4-neighbour cells; "earlier" = lower index, the agents the priority
+    channel says it gives way to), and the cells of the earlier agents touching it."""
+    gap = np.abs(positions - positions[agent]).sum(axis=1)
+    touching = np.flatnonzero(gap == 1)
+    earlier = {tuple(positions[j]) for j in touching if j < agent}
+    return (CONTACTS[0] if earlier else CONTACTS[1] if len(touching) else CONTACTS[2]), earlier
+
+
 def label_agreement(path, agents: int, side: int, cases: int, seed: int = 0, density: float = 0.3,
                     max_steps: int = 256, every: int = 3) -> dict:
     """Held-out imitation accuracy where it matters: at every `every`-th step of each greedy episode, how often the
@@ -214,7 +227,13 @@ def label_agreement(path, agents: int, side: int, cases: int, seed: int = 0, den
     model's own expert (train_args' `expert`, ODrM* or the prioritized plan, one plan per episode) from that state;
     split by solved and failed episodes. The training log's `agreement` is over replay batches, where about half the
     labelled rows have nobody in view, and `agreement_meet` over the batches' rows of this kind: both on the
-    training distribution, this one on held-out greedy play (issue 20, thirtieth session)."""
+    training distribution, this one on held-out greedy play (issue 20, thirtieth session).
+
+    With the prioritized expert, `*_agree_tied` also counts an argmax that the plan ranks equal to its label (the
+    same plan length, `first_move_costs`): the label's pick among equal moves follows the search's fixed direction
+    order, which a model trained on turned rows (`--augment`) cannot learn, nor needs to. `by_contact` splits the
+    rows by what touches the agent (`contact_split`) and counts how often the argmax and the label move into an
+    earlier agent's cell (issue 20, thirty-fourth and thirty-seventh sessions)."""
     from mapf_policy.train.expert import ExpertFailed, make_oracle
 
     if every < 1:
@@ -222,8 +241,10 @@ def label_agreement(path, agents: int, side: int, cases: int, seed: int = 0, den
     net, _, meta = load_model(path)
     forward, mode = acting(net), model_last_action(meta)
     expert = model_expert(meta)
-    out = {"expert": expert, "solved_steps": 0, "solved_agree": 0, "failed_steps": 0, "failed_agree": 0,
-           "unlabelled_states": 0}
+    tied = expert == "prioritized"
+    out = {"expert": expert, "unlabelled_states": 0, "by_contact": {}}
+    for kind in ("solved", "failed"):
+        out.update({f"{kind}_steps": 0, f"{kind}_agree": 0, f"{kind}_agree_tied": 0 if tied else None})
     for inst in generated_cases(seed, COMPARE_STREAM, [agents], cases, side, density):
         env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=mode,
                       **net.cfg.env_channels())
@@ -240,8 +261,28 @@ def label_agreement(path, agents: int, side: int, cases: int, seed: int = 0, den
             except ExpertFailed:
                 out["unlabelled_states"] += 1
                 continue
+            act = steps["action"][t]
+            agree = label == act
+            if tied:  # where the prioritized plan has no row (its ODrM* fallback labelled it), the label alone
+                costs = first_move_costs(env.grid, cells, env.goals, env.dist)
+                best = np.where(costs >= 0, costs, np.iinfo(np.int64).max).min(axis=1)
+                planned = (costs >= 0).any(axis=1)
+                agree_tied = np.where(planned, costs[np.arange(len(act)), act] == best, agree)
+                out[f"{kind}_agree_tied"] += int(agree_tied[mask].sum())
             out[f"{kind}_steps"] += int(mask.sum())
-            out[f"{kind}_agree"] += int((label == steps["action"][t])[mask].sum())
+            out[f"{kind}_agree"] += int(agree[mask].sum())
+            for i in np.flatnonzero(mask):
+                split, earlier = contact_split(cells, i)
+                into = [int(a != STAY and tuple(cells[i] + DELTAS[a]) in earlier) for a in (act[i], label[i])]
+                row = out["by_contact"].setdefault(f"{kind} | {split}", {
+                    "rows": 0, "agree": 0, "agree_tied": 0 if tied else None, "argmax_into_earlier": 0,
+                    "label_into_earlier": 0})
+                row["rows"] += 1
+                row["agree"] += int(agree[i])
+                row["argmax_into_earlier"] += into[0]
+                row["label_into_earlier"] += into[1]
+                if tied:
+                    row["agree_tied"] += int(agree_tied[i])
     return out
 
 
@@ -288,7 +329,8 @@ def main(argv=None) -> int:
     p.add_argument("--stuck-expert-epsilon", type=float, default=10.0, help="ODrM* bound of --stuck's labels (default 10)")
     p.add_argument("--agreement", action="store_true",
                    help="also report, for each rung's team sizes, how often the greedy action of an agent with another "
-                        "agent in view is its expert's label (label_agreement; every third step)")
+                        "agent in view is its expert's label (label_agreement; every third step), with the prioritized "
+                        "expert also counting moves its plan ranks equal to the label, and split by what touches the agent")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     if args.cases < 1:
@@ -337,6 +379,14 @@ def main(argv=None) -> int:
                   f"the argmax is the {rep['expert']} label at {rep['solved_agree']} of {rep['solved_steps']} "
                   f"({share['solved']:.3f}) in solved cases and {rep['failed_agree']} of {rep['failed_steps']} "
                   f"({share['failed']:.3f}) in failed ones; {rep['unlabelled_states']} states without a label")
+            if rep["solved_agree_tied"] is not None:
+                print(f"  counting moves the plan ranks equal to its label: {rep['solved_agree_tied']} solved, "
+                      f"{rep['failed_agree_tied']} failed")
+            for split, c in sorted(rep["by_contact"].items()):
+                tied_part = "" if c["agree_tied"] is None else f", {c['agree_tied'] / c['rows']:.3f} with ties"
+                print(f"  {split}: {c['rows']} rows, agreement {c['agree'] / c['rows']:.3f}{tied_part}; argmax / label "
+                      f"into an earlier agent {c['argmax_into_earlier'] / c['rows']:.3f} / "
+                      f"{c['label_into_earlier'] / c['rows']:.3f}")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0 if all(r["passed"] for r in rows) else 1

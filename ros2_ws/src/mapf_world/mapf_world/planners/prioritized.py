@@ -88,8 +88,9 @@ def _neighbours(grid: np.ndarray) -> list[list[int]]:
 
 
 def _space_time_astar(start: int, goal: int, dist: np.ndarray, nbrs: list[list[int]], res: _Reservations,
-                      max_expansions: int) -> tuple[list[int] | None, int]:
-    """Shortest path (flat cells per step) from start at t=0 to staying on goal for good, around `res`."""
+                      max_expansions: int, t0: int = 0) -> tuple[list[int] | None, int]:
+    """Shortest path (flat cells per step, the first at step t0) from start at t0 to staying on goal for good,
+    around `res`."""
     if dist[start] >= UNREACHABLE or goal in res.parked:
         return None, 0
     # After `horizon` only parked cells are taken, so the world stands still: states from then on are
@@ -97,8 +98,8 @@ def _space_time_astar(start: int, goal: int, dist: np.ndarray, nbrs: list[list[i
     horizon = max(res.last.values(), default=0) + 1
     # Heap entries (f, -t, tie, cell, t): f = t + distance; deeper first among equal f; then insertion order,
     # which follows the action order (stay, up, down, left, right), so equal plans break ties the same way.
-    heap = [(int(dist[start]), 0, 0, start, 0)]
-    parent: dict[tuple[int, int], tuple[int, int] | None] = {(start, 0): None}
+    heap = [(t0 + int(dist[start]), -t0, 0, start, t0)]
+    parent: dict[tuple[int, int], tuple[int, int] | None] = {(start, min(t0, horizon)): None}
     tie, expansions = 1, 0
     while heap:
         _, _, _, cell, t = heapq.heappop(heap)
@@ -151,6 +152,49 @@ def plan_prioritized(grid, starts, goals, dist: np.ndarray | None = None,
     length = max(len(p) for p in paths)
     flat = np.array([p + [p[-1]] * (length - len(p)) for p in paths], dtype=np.int64).T  # (T+1, N)
     return PrioritizedResult(np.stack([flat // w, flat % w], axis=-1), -1, total)
+
+
+def first_move_costs(grid, positions, goals, dist: np.ndarray | None = None,
+                     max_expansions: int = DEFAULT_MAX_EXPANSIONS, nbrs: list[list[int]] | None = None) -> np.ndarray:
+    """(N, 5) int: for each agent and first action (stay, up, down, left, right), the length of its shortest
+    plan that starts with that action (steps until it stays on its goal for good), planned as plan_prioritized
+    plans: in index order, around the plans of the earlier agents and ignoring the later ones; -1 where the
+    action is illegal (a wall, off the map, a cell or swap taken by an earlier agent) or leaves no plan.
+
+    Its minimum over actions is the agent's cost in the prioritized plan, and the actions at that minimum are
+    the moves the expert ranks equal: its label is one of them, picked by the search's fixed direction order.
+    An agent with no plan at all (row of -1) stops the planning: the later agents' rows are -1 too."""
+    grid = check_grid(grid)
+    positions = check_cells(grid, positions, what="positions")
+    goals = check_cells(grid, goals, what="goals")
+    if positions.shape != goals.shape:
+        raise ValueError(f"positions has {positions.shape[0]} agents, goals {goals.shape[0]}")
+    if dist is None:
+        dist = distance_maps(grid, goals)
+    h, w = grid.shape
+    flat_dist = np.asarray(dist).reshape(len(goals), -1)
+    nbrs = _neighbours(grid) if nbrs is None else nbrs
+    costs = np.full((len(goals), len(DELTAS)), -1, dtype=np.int64)
+    res = _Reservations()
+    for i, (s, g) in enumerate(zip(positions, goals)):
+        start, goal = int(s[0] * w + s[1]), int(g[0] * w + g[1])
+        for a, (dr, dc) in enumerate(DELTAS):
+            r, c = int(s[0] + dr), int(s[1] + dc)
+            if not (0 <= r < h and 0 <= c < w) or grid[r, c] or not res.free(start, r * w + c, 1):
+                continue
+            if a == 0 and start == goal and res.can_stop(start, 0):
+                path = [start]  # already there for good: the plan's cost is 0, staying keeps it
+            else:
+                tail, _ = _space_time_astar(r * w + c, goal, flat_dist[i], nbrs, res, max_expansions, t0=1)
+                path = None if tail is None else [start] + tail
+            if path is not None:
+                costs[i, a] = len(path) - 1
+        # The later agents plan around the path plan_prioritized picks among the equal ones (its tie order).
+        chosen, _ = _space_time_astar(start, goal, flat_dist[i], nbrs, res, max_expansions)
+        if chosen is None:
+            break
+        res.add(chosen)
+    return costs
 
 
 class PrioritizedOracle:
