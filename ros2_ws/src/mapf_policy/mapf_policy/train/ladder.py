@@ -263,7 +263,9 @@ def label_agreement(path, agents: int, side: int, cases: int, seed: int = 0, den
                 continue
             act = steps["action"][t]
             agree = label == act
-            if tied:  # where the prioritized plan has no row (its ODrM* fallback labelled it), the label alone
+            # With ties: the argmax is one of the prioritized plan's best moves; for an agent it has no row for (the
+            # plan failed at or before it, and the ODrM* fallback labelled the state), the label alone.
+            if tied:
                 costs = first_move_costs(env.grid, cells, env.goals, env.dist)
                 best = np.where(costs >= 0, costs, np.iinfo(np.int64).max).min(axis=1)
                 planned = (costs >= 0).any(axis=1)
