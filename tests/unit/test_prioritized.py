@@ -18,12 +18,17 @@ def _plays_out(grid, starts, goals, positions):
     assert np.array_equal(pos, goals)
 
 
-def test_head_on_in_a_corridor_with_a_bay_the_later_agent_gives_way():
-    # Row 1 is a corridor, (0, 3) a bay above it. Agent 0 goes right, agent 1 left: one must wait in the bay.
+def _corridor_with_a_bay():
+    """Row 1 is a corridor, (0, 3) a bay above it; agent 0 goes right, agent 1 left (grid, starts, goals)."""
     grid = np.array([[1, 1, 1, 0, 1],
                      [0, 0, 0, 0, 0],
                      [1, 1, 1, 1, 1]], dtype=np.uint8)
-    starts, goals = np.array([[1, 0], [1, 4]]), np.array([[1, 4], [1, 0]])
+    return grid, np.array([[1, 0], [1, 4]]), np.array([[1, 4], [1, 0]])
+
+
+def test_head_on_in_a_corridor_with_a_bay_the_later_agent_gives_way():
+    # Row 1 is a corridor, (0, 3) a bay above it. Agent 0 goes right, agent 1 left: one must wait in the bay.
+    grid, starts, goals = _corridor_with_a_bay()
     res = plan_prioritized(grid, starts, goals)
     assert res.solved and res.failed_agent == -1
     path0 = res.positions[:, 0]
@@ -103,10 +108,7 @@ def test_expert_prioritized_falls_back_to_odrmstar_where_it_finds_no_plan():
 
 
 def test_first_move_costs_in_a_corridor_with_a_bay():
-    grid = np.array([[1, 1, 1, 0, 1],
-                     [0, 0, 0, 0, 0],
-                     [1, 1, 1, 1, 1]], dtype=np.uint8)
-    starts, goals = np.array([[1, 0], [1, 4]]), np.array([[1, 4], [1, 0]])
+    grid, starts, goals = _corridor_with_a_bay()
     costs = first_move_costs(grid, starts, goals)
     # Agent 0 (first) ignores agent 1: right is its 4-step path, stay costs one more, the rest are walls.
     assert costs[0].tolist() == [5, -1, -1, -1, 4]
