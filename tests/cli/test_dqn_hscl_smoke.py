@@ -328,3 +328,13 @@ def test_rollouts_that_deviate_only_yielding_agents_need_the_priority_channel(re
                "--stuck-cycles", "--stuck-rollout", "4", "--mine-episodes", "1", "--rollout-yielding")
     assert run.returncode == 0, run.stderr[-3000:]
     assert json.loads((tmp_path / "runs" / "y" / "config.json").read_text())["rollout_yielding"] is True
+
+
+def test_rollouts_restricted_to_the_plans_best_moves_run_and_are_recorded(repo_root, tmp_path):
+    bad = _run(repo_root, tmp_path, "--run-name", "pb0", "--rollout-plan-best")
+    assert bad.returncode == 2 and "rollout_plan_best needs" in bad.stderr
+    run = _run(repo_root, tmp_path, "--run-name", "pb", "--greedy-fraction", "1", "--stuck-steps", "1",
+               "--stuck-cycles", "--stuck-rollout", "4", "--mine-episodes", "1", "--rollout-plan-best")
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert json.loads((tmp_path / "runs" / "pb" / "config.json").read_text())["rollout_plan_best"] is True
+    assert all(int(r["mined_labels"]) >= 0 for r in _rows(tmp_path / "runs" / "pb" / "train.csv"))

@@ -725,6 +725,35 @@ def test_best_deviation_with_yielding_moves_only_the_agent_that_sees_an_earlier_
     assert yielded is not None and yielded[0] == 1  # the later agent goes round instead
 
 
+def test_plan_best_moves_are_the_minimum_of_first_move_costs():
+    from mapf_policy.train.dqn_hscl import plan_best_moves
+    from mapf_world.grid import DOWN, RIGHT, STAY, UP
+    from mapf_world.heuristics import distance_maps
+    # Agent 0 parked on its goal at (1, 2); agent 1 at (1, 1) bound for (1, 4) goes round it, over or under (ties).
+    grid = np.zeros((3, 5), np.uint8)
+    pos, goals = np.array([[1, 2], [1, 1]]), np.array([[1, 2], [1, 4]])
+    best = plan_best_moves(grid, pos, goals, distance_maps(grid, goals))
+    assert np.flatnonzero(best[0]).tolist() == [STAY]
+    assert np.flatnonzero(best[1]).tolist() == [UP, DOWN]  # RIGHT, the push, is illegal for the plan
+    # a walled-in agent has no plan: every action stays allowed for it (and for the later agents)
+    walled = np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]], np.uint8)
+    p2, g2 = np.array([[1, 1], [0, 0]]), np.array([[0, 2], [2, 2]])
+    assert plan_best_moves(walled, p2, g2, distance_maps(walled, g2)).all()
+    assert best.shape == (2, 5) and not best[1, RIGHT]
+
+
+def test_best_deviation_with_plan_best_tries_only_the_plans_best_moves():
+    from mapf_policy.train.dqn_hscl import best_deviation
+    from mapf_world.grid import DOWN, RIGHT, STAY, UP
+    env = MapfEnv(np.zeros((3, 5), np.uint8), np.array([[1, 2], [1, 1]]), np.array([[1, 2], [1, 4]]),
+                  last_action="executed")
+    env.reset()
+    free = best_deviation(_heuristic_greedy, env, np.array([STAY, RIGHT]), 20, 2)
+    planned = best_deviation(_heuristic_greedy, env, np.array([STAY, RIGHT]), 20, 2, plan_best=True)
+    assert free is not None and free[0] == 0  # unrestricted: the parked earlier agent steps aside, a move its plan ranks worse
+    assert planned is not None and planned[0] == 1 and planned[1] in (UP, DOWN)  # the plan's way: the later one goes round
+
+
 def test_contact_rows_are_off_goal_agents_touching_an_earlier_agent():
     grid = np.zeros((12, 12), dtype=np.int8)
     # 0 and 1 side by side (1 touches the earlier 0; 0 touches only a later agent); 2 diagonal to 1 (touches no one);

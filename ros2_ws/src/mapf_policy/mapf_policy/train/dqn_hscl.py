@@ -58,6 +58,7 @@ from mapf_world.grid import DELTAS, STAY
 from mapf_world.heuristics import distance_maps
 from mapf_world.instances import generate_instance
 from mapf_world.planners.odrmstar import OBJECTIVES as EXPERT_OBJECTIVES
+from mapf_world.planners.prioritized import first_move_costs
 
 
 @dataclass(frozen=True)
@@ -263,6 +264,12 @@ class Args:
     agent (a lower index, marked in the priority channel) within the field of view, the ones that the index order says
     make way; all agents where no agent sees an earlier one. So the mined labels follow the visible give-way rule
     that the prioritized expert's labels follow too."""
+    rollout_plan_best: bool = False
+    """Beyond the paper, with stuck_rollout: the rollout search tries only the moves that the prioritized plan from
+    that state ranks best for the agent (plan_best_moves; every move for an agent the plan has no path for). Without
+    it, about 0.7 of r107's mined labels were moves the plan ranks worse, mostly detours round an agent that gives way
+    by the index order, and the trained networks make those detours where the plan's move works (issue 20;
+    EXPERIMENTS.md, thirty-seventh session). With it, a loop that no such single step breaks yields no label."""
     stuck_cycles: bool = False
     """Beyond the paper: a greedy actor team is stuck (stuck_steps' exploration, stuck_rescue, stuck_rollout) where its
     joint state (positions, executed and requested last actions: what every observation is built from) repeats one
@@ -344,6 +351,7 @@ class Args:
         need(self.stuck_rollout >= 0, f"stuck_rollout must be >= 0, got {self.stuck_rollout}")
         need(not self.rollout_yielding or (self.stuck_rollout > 0 and self.priority),
              "rollout_yielding needs stuck_rollout > 0 and priority (the order it yields by is the priority channel's)")
+        need(not self.rollout_plan_best or self.stuck_rollout > 0, "rollout_plan_best needs stuck_rollout > 0")
         need(self.mine_episodes >= 0, f"mine_episodes must be >= 0, got {self.mine_episodes}")
         countable = not self.still_bins or self.still_count == "revisit"  # joint_state holds only that count
         need(not self.mine_episodes or (self.stuck_rollout > 0 and countable and not self.recurrent),
@@ -518,7 +526,7 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
                  expert_drives: bool = False, greedy_until_stuck: int = 0,
                  blocking: tuple[float, int] = (0.0, 0), goal_exploration: bool = True,
                  stuck_ends: bool = False, stuck_rescue: bool = False, stuck_rollout: int = 0,
-                 stuck_cycles: bool = False, yielding: bool = False) -> tuple[dict, dict]:
+                 stuck_cycles: bool = False, yielding: bool = False, plan_best: bool = False) -> tuple[dict, dict]:
     """One episode, every agent acting on its own observation (all in one batch).
 
     Actions: argmax Q (the paper's greedy rule; ties to the lowest index), or the expert's when
@@ -536,7 +544,8 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
     best_deviation's move is played there and labels its agent's row (stats["deviations"]), random steps only where
     no deviation helps (at most MAX_DEVIATION_SEARCHES searches an episode). With `stuck_cycles`, the team is stuck
     where its joint state (MapfEnv.joint_state) repeats one it was in before in the episode, a cycle of any period of
-    the deterministic greedy team, instead of after k still steps."""
+    the deterministic greedy team, instead of after k still steps. `yielding` and `plan_best` restrict the search
+    (best_deviation)."""
     cfg = getattr(forward, "cfg", NetworkConfig())
     recurrent = isinstance(forward, RecurrentActor)
     obs, _ = env.reset()
@@ -571,8 +580,8 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
             actions = q.argmax(axis=1)
             if stuck_rollout and stuck and eps_now == 0.0:
                 searches += 1
-                dev = (best_deviation(forward, env, actions, stuck_rollout, greedy_until_stuck, stuck_cycles, yielding)
-                       if searches <= MAX_DEVIATION_SEARCHES else None)
+                dev = (best_deviation(forward, env, actions, stuck_rollout, greedy_until_stuck, stuck_cycles, yielding,
+                                      plan_best) if searches <= MAX_DEVIATION_SEARCHES else None)
                 if dev is None:
                     eps_now = epsilon  # no single step of one agent gets the team moving: explore, as stuck_steps does
                     if epsilon == 0.0:  # nothing would ever change: the episode is over
@@ -649,12 +658,13 @@ def mining_envs(seed: int, first: int, count: int, agents: int, size: int, densi
     return envs
 
 
-def mine(forward, envs: list[MapfEnv], horizon: int, rng, yielding: bool = False) -> list[tuple[dict, dict]]:
+def mine(forward, envs: list[MapfEnv], horizon: int, rng, yielding: bool = False,
+         plan_best: bool = False) -> list[tuple[dict, dict]]:
     """Mining (Args.mine_episodes): (steps, stats) of play_episode, greedy with the rollout search of `horizon` steps
     wherever the team loops, for the envs whose teams get stuck at all; the others, screened in lockstep by
     greedy_gets_stuck, can yield no label and are not played again."""
     return [play_episode(forward, env, 0.0, rng, greedy_until_stuck=1, stuck_rollout=horizon, stuck_cycles=True,
-                         yielding=yielding)
+                         yielding=yielding, plan_best=plan_best)
             for env, hit in zip(envs, greedy_gets_stuck(forward, envs)) if hit]
 
 
@@ -668,24 +678,36 @@ def yielding_agents(positions: np.ndarray, radius: int) -> np.ndarray:
     return ((d <= radius) & earlier).any(axis=1)
 
 
+def plan_best_moves(grid: np.ndarray, positions: np.ndarray, goals: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(N, 5) bool: the first actions the prioritized plan from this state ranks best for each agent (the minimum of
+    first_move_costs over its legal actions; ties all count); every action for an agent the plan has no path for."""
+    costs = first_move_costs(grid, positions, goals, dist)
+    legal = costs >= 0
+    best = np.where(legal, costs, np.iinfo(costs.dtype).max).min(axis=1, keepdims=True)
+    return np.where(legal.any(axis=1, keepdims=True), legal & (costs == best), True)
+
+
 def best_deviation(forward, env: MapfEnv, actions: np.ndarray, horizon: int, stuck_steps: int,
-                   cycles: bool = False, yielding: bool = False) -> tuple[int, int] | None:
+                   cycles: bool = False, yielding: bool = False, plan_best: bool = False) -> tuple[int, int] | None:
     """(agent, action) that gets a greedy team out of a fixed point, or None.
 
     For each agent i and each action a other than its greedy one (actions), a copy of the episode plays the joint
     actions with a in place of agent i's, then greedy play for up to `horizon` steps, stopping early where the copy
     stands still `stuck_steps` steps again (with `cycles`: where its joint state repeats, so it loops for ever). A deviation refused at once is skipped. Best: solved in the fewest steps;
     else the lowest sum over agents of the distance to the goal at the copy's end, if below the sum now. With
-    `yielding`, only the agents yielding_agents finds deviate (all of them where it finds none)."""
+    `yielding`, only the agents yielding_agents finds deviate (all of them where it finds none); with `plan_best`,
+    only to the moves plan_best_moves allows."""
     dist = env.dist
     idx = np.arange(env.n_agents)
     sum_dist = lambda pos: int(dist[idx, pos[:, 0], pos[:, 1]].sum())  # noqa: E731
     cfg = getattr(forward, "cfg", NetworkConfig())
     best, best_key = None, (1, sum_dist(env.positions))  # (0, steps) solved; (1, sum of distances) not
     movers = yielding_agents(env.positions, cfg.fov_size // 2) if yielding else np.ones(env.n_agents, dtype=bool)
+    allowed = (plan_best_moves(env.grid, env.positions, env.goals, dist) if plan_best
+               else np.ones((env.n_agents, 5), dtype=bool))
     for i in np.flatnonzero(movers) if movers.any() else range(env.n_agents):
         for a in range(5):
-            if a == actions[i]:
+            if a == actions[i] or not allowed[i, a]:
                 continue
             sim = copy.deepcopy(env)
             joint = actions.copy()
@@ -1139,7 +1161,8 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                                         goal_exploration=args.goal_exploration,
                                         stuck_ends=args.stuck_value and greedy, stuck_rescue=args.stuck_rescue and greedy,
                                         stuck_rollout=args.stuck_rollout if greedy else 0,
-                                        stuck_cycles=args.stuck_cycles, yielding=args.rollout_yielding)
+                                        stuck_cycles=args.stuck_cycles, yielding=args.rollout_yielding,
+                                        plan_best=args.rollout_plan_best)
             rows = episode_rows(steps, stats["success"], args.gamma, args.n_step, args.feasible_labels,
                                 STILL_KEYS[args.still_count], goals=None if args.parked_labels else env.goals,
                                 episode=state["episodes"], fixed_point=stats["fixed_point"], map_shape=env.grid.shape)
@@ -1157,7 +1180,8 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             m_envs = mining_envs(args.seed, state.get("mined", 0), args.mine_episodes, m_agents, m_size, args.density,
                                  args.max_episode_steps, args.last_action, ncfg)
             state["mined"] = state.get("mined", 0) + args.mine_episodes
-            for m_steps, m_stats in mine(act_q, m_envs, args.stuck_rollout, rng, args.rollout_yielding):
+            for m_steps, m_stats in mine(act_q, m_envs, args.stuck_rollout, rng, args.rollout_yielding,
+                                         args.rollout_plan_best):
                 if m_stats["deviations"]:
                     m_rows = episode_rows(m_steps, m_stats["success"], args.gamma, args.n_step, False,
                                           STILL_KEYS[args.still_count], episode=state["episodes"],
