@@ -614,7 +614,7 @@ def _heuristic_greedy(fov, last_action, position):
 
 
 def test_best_deviation_finds_the_step_aside_that_gets_a_greedy_team_out():
-    from mapf_policy.train.dqn_hscl import best_deviation
+    from mapf_policy.train.rollout import best_deviation
     from mapf_world.grid import RIGHT, STAY, UP
     # Agent 0 pushes right into agent 1, parked on its goal in an open 3x5 room: a greedy fixed point.
     env = MapfEnv(np.zeros((3, 5), np.uint8), np.array([[1, 1], [1, 2]]), np.array([[1, 4], [1, 2]]),
@@ -631,7 +631,7 @@ def test_best_deviation_finds_the_step_aside_that_gets_a_greedy_team_out():
 
 
 def test_best_deviation_gives_none_where_no_single_step_helps_and_the_episode_explores():
-    from mapf_policy.train.dqn_hscl import best_deviation
+    from mapf_policy.train.rollout import best_deviation
     from mapf_world.grid import RIGHT, STAY
     # A one-row corridor: agent 1 cannot step aside, and nothing one agent does brings the team closer.
     env = MapfEnv(np.zeros((1, 5), np.uint8), np.array([[0, 1], [0, 2]]), np.array([[0, 4], [0, 2]]),
@@ -687,7 +687,7 @@ def test_stuck_cycles_catch_a_team_that_steps_back_and_forth():
 
 
 def test_the_lockstep_screen_finds_exactly_the_greedy_teams_that_get_stuck():
-    from mapf_policy.train.dqn_hscl import greedy_gets_stuck
+    from mapf_policy.train.rollout import greedy_gets_stuck
     from mapf_world.instances import generate_instance
 
     def env_of(seed, agents):
@@ -704,7 +704,7 @@ def test_the_lockstep_screen_finds_exactly_the_greedy_teams_that_get_stuck():
 
 
 def test_yielding_agents_are_those_that_see_an_earlier_agent():
-    from mapf_policy.train.dqn_hscl import yielding_agents
+    from mapf_policy.train.rollout import yielding_agents
 
     pos = np.array([[0, 0], [0, 4], [0, 9], [9, 9]])
     # agent 1 sees agent 0 (distance 4); agent 2 sees agent 1 (5 away: no) -> no; agent 3 sees nobody earlier nearby
@@ -713,7 +713,7 @@ def test_yielding_agents_are_those_that_see_an_earlier_agent():
 
 
 def test_best_deviation_with_yielding_moves_only_the_agent_that_sees_an_earlier_one():
-    from mapf_policy.train.dqn_hscl import best_deviation
+    from mapf_policy.train.rollout import best_deviation
     from mapf_world.grid import RIGHT, STAY
     # As above with the indices swapped: agent 0 is parked on its goal, agent 1 pushes into it.
     env = MapfEnv(np.zeros((3, 5), np.uint8), np.array([[1, 2], [1, 1]]), np.array([[1, 2], [1, 4]]),
@@ -726,7 +726,7 @@ def test_best_deviation_with_yielding_moves_only_the_agent_that_sees_an_earlier_
 
 
 def test_plan_best_moves_are_the_minimum_of_first_move_costs():
-    from mapf_policy.train.dqn_hscl import plan_best_moves
+    from mapf_policy.train.rollout import plan_best_moves
     from mapf_world.grid import DOWN, RIGHT, STAY, UP
     from mapf_world.heuristics import distance_maps
     # Agent 0 parked on its goal at (1, 2); agent 1 at (1, 1) bound for (1, 4) goes round it, over or under (ties).
@@ -743,7 +743,7 @@ def test_plan_best_moves_are_the_minimum_of_first_move_costs():
 
 
 def test_best_deviation_with_plan_best_tries_only_the_plans_best_moves():
-    from mapf_policy.train.dqn_hscl import best_deviation
+    from mapf_policy.train.rollout import best_deviation
     from mapf_world.grid import DOWN, RIGHT, STAY, UP
     env = MapfEnv(np.zeros((3, 5), np.uint8), np.array([[1, 2], [1, 1]]), np.array([[1, 2], [1, 4]]),
                   last_action="executed")

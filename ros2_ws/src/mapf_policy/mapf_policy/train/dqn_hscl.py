@@ -24,12 +24,12 @@ What differs from the first design (mapf_policy/train/learner.py), and why (mode
   per agent, trained on sequences from stored memories, `recurrent_batch`), and greedy actor episodes that end at
   the greedy team's fixed points with their exact value (`--stuck-value`).
 Everything runs in this process; actions come from InferenceNet (the fast CPU forward of inference.py).
+The rollout search that labels a looping greedy team's way out (stuck_rollout, mining) is in rollout.py.
 """
 from __future__ import annotations
 
 import argparse
 import collections
-import copy
 import dataclasses
 import json
 import os
@@ -49,16 +49,16 @@ from mapf_policy.inference import FastForward, InferenceNet
 from mapf_policy.losses import expert_agreement, hscl_loss, margin_loss
 from mapf_policy.model_io import load_model, save_model
 from mapf_policy.network import QNetwork, network_inputs, still_onehot
-from mapf_policy.train.demos import ACTOR_STREAM, MINE_STREAM, VALID_STREAM, generated_cases, instance_rng
+from mapf_policy.train.demos import ACTOR_STREAM, VALID_STREAM, generated_cases, instance_rng
 from mapf_policy.train.expert import ExpertFailed, make_oracle
 from mapf_policy.train.log import CsvLog, read_csv, truncate_log
+from mapf_policy.train.rollout import best_deviation, greedy_gets_stuck, mining_envs
 from mapf_policy.train.symmetry import SYMMETRIES, Augmenter, direction_blocks
 from mapf_world.env import LAST_ACTION_MODES, MapfEnv
 from mapf_world.grid import DELTAS, STAY
 from mapf_world.heuristics import distance_maps
 from mapf_world.instances import generate_instance
 from mapf_world.planners.odrmstar import OBJECTIVES as EXPERT_OBJECTIVES
-from mapf_world.planners.prioritized import first_move_costs
 
 
 @dataclass(frozen=True)
@@ -616,48 +616,6 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
                    "blocked": blocked, "deviations": deviations}
 
 
-def greedy_gets_stuck(forward, envs: list[MapfEnv]) -> np.ndarray:
-    """(len(envs),) bool: whether each fresh episode's greedy team reaches a joint state it was in before (a cycle)
-    before it ends, i.e. whether play_episode(greedy_until_stuck=1, stuck_cycles=True) would search a deviation
-    there. All teams play in lockstep, one network call a step for all of them: mining (Args.mine_episodes) screens
-    its episodes so, and plays again, one by one with the search, only those that get stuck, about one in twenty of
-    a trained policy's on 4x20. The envs are played to their end (reset them, or build new ones, to play again)."""
-    cfg = getattr(forward, "cfg", NetworkConfig())
-    obs = [env.reset()[0] for env in envs]
-    seen = [{env.joint_state()} for env in envs]
-    stuck, active = np.zeros(len(envs), dtype=bool), list(range(len(envs)))
-    while active:
-        parts = [network_inputs(obs[i], cfg) for i in active]
-        with torch.inference_mode():
-            q = forward(*(torch.cat(column) for column in zip(*parts))).numpy()
-        actions = np.split(q.argmax(axis=1), np.cumsum([envs[i].n_agents for i in active])[:-1])
-        still_active = []
-        for i, a in zip(active, actions):
-            obs[i], _, terminated, truncated, _ = envs[i].step(a)
-            state_now = envs[i].joint_state()
-            if terminated or truncated:
-                continue
-            if state_now in seen[i]:
-                stuck[i] = True
-                continue
-            seen[i].add(state_now)
-            still_active.append(i)
-        active = still_active
-    return stuck
-
-
-def mining_envs(seed: int, first: int, count: int, agents: int, size: int, density: float, max_steps: int,
-                last_action: str, cfg: NetworkConfig) -> list[MapfEnv]:
-    """Episodes first .. first + count - 1 of the mining seed stream (MINE_STREAM), as fresh environments with the
-    observation channels network `cfg` reads."""
-    envs = []
-    for e in range(first, first + count):
-        inst = generate_instance(instance_rng(seed, MINE_STREAM, e), size=size, density=density, n_agents=agents)
-        envs.append(MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps, last_action=last_action,
-                            **cfg.env_channels()))
-    return envs
-
-
 def mine(forward, envs: list[MapfEnv], horizon: int, rng, yielding: bool = False,
          plan_best: bool = False) -> list[tuple[dict, dict]]:
     """Mining (Args.mine_episodes): (steps, stats) of play_episode, greedy with the rollout search of `horizon` steps
@@ -669,67 +627,6 @@ def mine(forward, envs: list[MapfEnv], horizon: int, rng, yielding: bool = False
 
 
 MAX_DEVIATION_SEARCHES = 8  # best_deviation calls an episode (each costs up to 4 N rollouts of `horizon` steps)
-
-
-def yielding_agents(positions: np.ndarray, radius: int) -> np.ndarray:
-    """(N,) bool: agent i sees an earlier agent j < i within Chebyshev distance `radius` (inside its field of view)."""
-    d = np.abs(positions[:, None, :] - positions[None, :, :]).max(axis=2)
-    earlier = np.tril(np.ones((len(positions),) * 2, dtype=bool), k=-1)  # [i, j]: j < i
-    return ((d <= radius) & earlier).any(axis=1)
-
-
-def plan_best_moves(grid: np.ndarray, positions: np.ndarray, goals: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """(N, 5) bool: the first actions the prioritized plan from this state ranks best for each agent (the minimum of
-    first_move_costs over its legal actions; ties all count); every action for an agent the plan has no path for."""
-    costs = first_move_costs(grid, positions, goals, dist)
-    legal = costs >= 0
-    best = np.where(legal, costs, np.iinfo(costs.dtype).max).min(axis=1, keepdims=True)
-    return np.where(legal.any(axis=1, keepdims=True), legal & (costs == best), True)
-
-
-def best_deviation(forward, env: MapfEnv, actions: np.ndarray, horizon: int, stuck_steps: int,
-                   cycles: bool = False, yielding: bool = False, plan_best: bool = False) -> tuple[int, int] | None:
-    """(agent, action) that gets a greedy team out of a fixed point, or None.
-
-    For each agent i and each action a other than its greedy one (actions), a copy of the episode plays the joint
-    actions with a in place of agent i's, then greedy play for up to `horizon` steps, stopping early where the copy
-    stands still `stuck_steps` steps again (with `cycles`: where its joint state repeats, so it loops for ever). A deviation refused at once is skipped. Best: solved in the fewest steps;
-    else the lowest sum over agents of the distance to the goal at the copy's end, if below the sum now. With
-    `yielding`, only the agents yielding_agents finds deviate (all of them where it finds none); with `plan_best`,
-    only to the moves plan_best_moves allows."""
-    dist = env.dist
-    idx = np.arange(env.n_agents)
-    sum_dist = lambda pos: int(dist[idx, pos[:, 0], pos[:, 1]].sum())  # noqa: E731
-    cfg = getattr(forward, "cfg", NetworkConfig())
-    best, best_key = None, (1, sum_dist(env.positions))  # (0, steps) solved; (1, sum of distances) not
-    movers = yielding_agents(env.positions, cfg.fov_size // 2) if yielding else np.ones(env.n_agents, dtype=bool)
-    allowed = (plan_best_moves(env.grid, env.positions, env.goals, dist) if plan_best
-               else np.ones((env.n_agents, 5), dtype=bool))
-    for i in np.flatnonzero(movers) if movers.any() else range(env.n_agents):
-        for a in range(5):
-            if a == actions[i] or not allowed[i, a]:
-                continue
-            sim = copy.deepcopy(env)
-            joint = actions.copy()
-            joint[i] = a
-            obs, _, done, truncated, info = sim.step(joint)
-            if info["failed"][i]:
-                continue
-            still, steps, visited, looped = 0, 1, {sim.joint_state()}, False
-            while not (done or truncated) and steps <= horizon and not looped and (cycles or still < stuck_steps):
-                with torch.inference_mode():
-                    greedy = forward(*network_inputs(obs, cfg)).numpy().argmax(axis=1)
-                before = sim.positions
-                obs, _, done, truncated, _ = sim.step(greedy)
-                still = still + 1 if np.array_equal(before, sim.positions) else 0
-                steps += 1
-                if cycles:
-                    looped = sim.joint_state() in visited
-                    visited.add(sim.joint_state())
-            key = (0, steps) if done else (1, sum_dist(sim.positions))
-            if key < best_key:
-                best, best_key = (i, a), key
-    return best
 
 
 def _labelled_moves_into(positions: np.ndarray, expert: np.ndarray, cells: np.ndarray) -> np.ndarray:
