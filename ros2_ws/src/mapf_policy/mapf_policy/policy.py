@@ -6,8 +6,11 @@ moving back. A Policy owns its random generator and each row's previous cell, so
 their order must stay fixed during an episode; `reset` starts a new one. One Policy per robot, or one
 per team with one row per agent (the evaluation solver): rows never see each other's state.
 
-Inputs are numpy arrays or tensors: fov (B, 6, l, l), last_action (B, 5) one-hot, position (B, 2) raw
-(row, col). A single agent may also be passed without the batch dimension. Output: (B,) int64 actions.
+Inputs are numpy arrays or tensors: fov (B, C, l, l) with the channels the network reads (the paper's six, then
+any beyond-the-paper channels of its NetworkConfig), last_action (B, 5) one-hot, position (B, 2) raw (row, col),
+and for a network with a still input (NetworkConfig.still_bins) the (B,) counts it reads. A single agent may also be
+passed without the batch dimension. Output: (B,) int64 actions. `act_obs` takes MapfEnv's observation dict; the
+environment must then be built with the network's `NetworkConfig.env_channels()` (the evaluation harness does).
 """
 from __future__ import annotations
 
@@ -20,7 +23,7 @@ from mapf_policy.action_selection import ActionChooser, ActionRule
 from mapf_policy.config import NetworkConfig
 from mapf_policy.inference import InferenceNet
 from mapf_policy.model_io import load_model
-from mapf_policy.network import QNetwork
+from mapf_policy.network import QNetwork, network_inputs
 
 
 class Policy:
@@ -36,6 +39,9 @@ class Policy:
             self.net, self.cfg, self.meta = load_model(model)
         else:
             raise ValueError(f"model must be a model file path or a QNetwork, got {type(model).__name__}")
+        if self.cfg.recurrent:
+            raise ValueError("Policy acts step by step without memory; a recurrent network (NetworkConfig.recurrent) "
+                             "needs the training code's RecurrentActor")
         if num_threads is not None:
             if num_threads < 1:
                 raise ValueError(f"num_threads must be >= 1, got {num_threads}")
@@ -70,25 +76,36 @@ class Policy:
             raise ValueError(f"{name} must have {dims - 1} or {dims} dimensions, got shape {tuple(t.shape)}")
         return t.to(self.device)
 
-    def q_values(self, fov, last_action, position) -> torch.Tensor:
-        """(B, 5) Q-values; shape errors name the offending input."""
+    def q_values(self, fov, last_action, position, still=None) -> torch.Tensor:
+        """(B, 5) Q-values; shape errors name the offending input. `still`: the (B, still_bins) one-hot still
+        input, for a network that reads one (and only then)."""
         f = self._tensor(fov, "fov", 4)
         a = self._tensor(last_action, "last_action", 2)
         p = self._tensor(position, "position", 2)
+        if bool(self.cfg.still_bins) != (still is not None):
+            raise ValueError(f"this network {'reads' if self.cfg.still_bins else 'has no'} still input "
+                             f"(NetworkConfig.still_bins {self.cfg.still_bins}); still was "
+                             f"{'not ' if still is None else ''}given")
+        s = None if still is None else self._tensor(still, "still", 2)
         with torch.inference_mode():
-            return self.forward(f, a, p)
+            return self.forward(f, a, p, s)
 
-    def act(self, fov, last_action, position) -> np.ndarray:
+    def act(self, fov, last_action, position, still=None) -> np.ndarray:
         """(B,) int64 actions by the rule; greedy ties go to the lowest index (stay). Remembers `position`
         as each row's previous cell for the next call."""
-        q = self.q_values(fov, last_action, position).cpu().numpy()
+        q = self.q_values(fov, last_action, position, still).cpu().numpy()
         f = fov.cpu().numpy() if isinstance(fov, torch.Tensor) else np.asarray(fov)
+        # The rule reads the paper's six channels (obstacles, agents, goal-direction bits); any channels beyond
+        # them come after those six (MapfEnv), so the rule sees the first six.
+        f = f[..., :self.cfg.in_channels, :, :]
         pos = position.cpu().numpy() if isinstance(position, torch.Tensor) else np.asarray(position)
         return self.chooser.choose(q, f, pos)
 
     def act_obs(self, obs: dict) -> np.ndarray:
-        """Actions for an observation dict of MapfEnv (keys fov, last_action, position)."""
+        """Actions for an observation dict of MapfEnv (keys fov, last_action, position, and the still counts for
+        a network that reads them)."""
         missing = [k for k in ("fov", "last_action", "position") if k not in obs]
         if missing:
             raise ValueError(f"observation dict lacks {missing}")
-        return self.act(obs["fov"], obs["last_action"], obs["position"])
+        still = network_inputs(obs, self.cfg)[3] if self.cfg.still_bins else None
+        return self.act(obs["fov"], obs["last_action"], obs["position"], still)

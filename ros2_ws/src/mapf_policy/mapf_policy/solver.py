@@ -40,6 +40,9 @@ class HsclSolver:
         # The observation's last action the model was trained with (MapfEnv's last_action; models before the
         # second design: "requested"); the harness builds its MapfEnv with it.
         self.last_action = policy.meta.get("last_action", "requested")
+        # MapfEnv keyword arguments for the observation channels (and revisit count) the network reads; the
+        # harness builds its MapfEnv with them. The paper's six channels: all off.
+        self.env_channels = policy.cfg.env_channels()
         # What decides the results, for the evaluation report (options left at their defaults included).
         self.settings = {"model": str(model_path), **policy.rule.asdict(), "seed": seed, "last_action": self.last_action,
                          **({"per_agent_seeds": True} if policy.chooser.per_agent_seeds else {})}

@@ -58,9 +58,10 @@ def run_case(solver: Solver, inst: Instance, max_steps: int, index: int = 0) -> 
     up (PlanFailed: a planner that timed out or found no plan), its robots have no plan and stand
     still, so the rest of the episode is played with every agent staying, up to max_steps."""
     t0 = time.perf_counter()
-    # A learned solver's observations carry the last action the way its model was trained (MapfEnv).
+    # A learned solver's observations carry the last action the way its model was trained, and the channels its
+    # network reads (MapfEnv keyword arguments, `env_channels`); planners read neither.
     env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=max_steps,
-                  last_action=getattr(solver, "last_action", "requested"))
+                  last_action=getattr(solver, "last_action", "requested"), **getattr(solver, "env_channels", {}))
     obs, info = env.reset()
     trajectory = [env.positions]
     failed_moves = 0
