@@ -88,7 +88,9 @@ class Policy:
                              f"{'not ' if still is None else ''}given")
         s = None if still is None else self._tensor(still, "still", 2)
         with torch.inference_mode():
-            return self.forward(f, a, p, s)
+            # A network without a still input is called with three inputs, as any forward replacing it expects
+            # (scripts/bench_inference swaps in other forward passes).
+            return self.forward(f, a, p) if s is None else self.forward(f, a, p, s)
 
     def act(self, fov, last_action, position, still=None) -> np.ndarray:
         """(B,) int64 actions by the rule; greedy ties go to the lowest index (stay). Remembers `position`
