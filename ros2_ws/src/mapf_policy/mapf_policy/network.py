@@ -208,8 +208,13 @@ def network_inputs(obs: dict, cfg: NetworkConfig) -> tuple:
     and the one-hot still input when the network takes it."""
     inputs = tuple(torch.from_numpy(np.asarray(obs[k], dtype=np.float32)) for k in ("fov", "last_action", "position"))
     if cfg.still_bins:
-        key = STILL_KEYS[cfg.still_count]
-        if key not in obs:
-            raise ValueError(f"this network takes a still input, but the observation has no {key!r} counts")
-        inputs += (still_onehot(obs[key], cfg.still_bins),)
+        inputs += (still_input(obs, cfg),)
     return inputs
+
+
+def still_input(obs: dict, cfg: NetworkConfig) -> torch.Tensor:
+    """The one-hot still input (B, still_bins) from an observation dict of MapfEnv, for a network that takes one."""
+    key = STILL_KEYS[cfg.still_count]
+    if key not in obs:
+        raise ValueError(f"this network takes a still input, but the observation has no {key!r} counts")
+    return still_onehot(obs[key], cfg.still_bins)

@@ -8,7 +8,7 @@ per team with one row per agent (the evaluation solver): rows never see each oth
 
 Inputs are numpy arrays or tensors: fov (B, C, l, l) with the channels the network reads (the paper's six, then
 any beyond-the-paper channels of its NetworkConfig), last_action (B, 5) one-hot, position (B, 2) raw (row, col),
-and for a network with a still input (NetworkConfig.still_bins) the (B,) counts it reads. A single agent may also be
+and for a network with a still input (NetworkConfig.still_bins) its (B, still_bins) one-hot. A single agent may also be
 passed without the batch dimension. Output: (B,) int64 actions. `act_obs` takes MapfEnv's observation dict; the
 environment must then be built with the network's `NetworkConfig.env_channels()` (the evaluation harness does).
 """
@@ -23,7 +23,7 @@ from mapf_policy.action_selection import ActionChooser, ActionRule
 from mapf_policy.config import NetworkConfig
 from mapf_policy.inference import InferenceNet
 from mapf_policy.model_io import load_model
-from mapf_policy.network import QNetwork, network_inputs
+from mapf_policy.network import QNetwork, still_input
 
 
 class Policy:
@@ -109,5 +109,5 @@ class Policy:
         missing = [k for k in ("fov", "last_action", "position") if k not in obs]
         if missing:
             raise ValueError(f"observation dict lacks {missing}")
-        still = network_inputs(obs, self.cfg)[3] if self.cfg.still_bins else None
+        still = still_input(obs, self.cfg) if self.cfg.still_bins else None
         return self.act(obs["fov"], obs["last_action"], obs["position"], still)
