@@ -48,9 +48,13 @@ class Fleet:
         self.mcap = self.out / "fleet.mcap"
         self.summary = self.out / "summary.json"
         self.group = ProcessGroup(self.out / "logs", fleet_env(domain))
+        # The observation the model reads (last-action mode, channels beyond the paper's six), as scripts/demo sets it.
+        from mapf_world.fleet_demo import policy_model_params
+        observation = policy_model_params(robot_model(model, self.out))[1]
         self.world_params = dict(instance_source="map", map_file=str(SMALL_MAP), scen_file=str(SMALL_SCEN),
                                  n_robots=n_robots, max_steps=12, action_timeout_s=1.0, ready_grace_s=1.0,
-                                 summary_path=str(self.summary), linger_s=0.5, wait_for_recorder="recorder") | (world or {})
+                                 summary_path=str(self.summary), linger_s=0.5, wait_for_recorder="recorder") | (
+            observation | (world or {}))
         self.drive_params = dict(real_time_factor=real_time_factor, rate_hz=rate_hz)
         self.policy_params = dict(policy or {})  # beyond model_path, e.g. the action rule
 

@@ -192,9 +192,11 @@ def test_observations_are_mapf_env_observations_and_actions_the_policy_s(run, an
     fleet, log, s = run["fleet"], run["log"], run["summary"]
     p = fleet.world_params
     inst = load_fleet_instance("map", map_file=p["map_file"], scen_file=p["scen_file"], n_robots=3)
-    env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=1000)
-    obs, _ = env.reset()
     policies = [Policy(str(any_model), seed=i) for i in range(3)]
+    # The observation the model reads: its last-action mode and channels, as the world was told (Fleet).
+    env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=1000, last_action=p["last_action"],
+                  **policies[0].cfg.env_channels())
+    obs, _ = env.reset()
     for k in range(s["steps"]):
         requested = [log.moves[k][i].requested_action for i in range(3)]
         for i in range(3):
@@ -202,7 +204,8 @@ def test_observations_are_mapf_env_observations_and_actions_the_policy_s(run, an
             assert np.array_equal(np.asarray(msg.fov, np.float32).reshape(obs["fov"][i].shape), obs["fov"][i]), (k, i)
             assert np.array_equal(np.asarray(msg.last_action, np.float32), obs["last_action"][i]), (k, i)
             assert list(msg.position) == obs["position"][i].astype(int).tolist()
-            expected = int(policies[i].act(obs["fov"][i], obs["last_action"][i], obs["position"][i])[0])
+            assert msg.revisits == obs["revisits"][i], (k, i)
+            expected = int(policies[i].act_obs({key: v[i:i + 1] for key, v in obs.items()})[0])
             assert log.actions[i][k].action == expected == requested[i], (k, i)
         obs, *_ = env.step(requested)
         assert env.positions.tolist() == s["positions"][k + 1]

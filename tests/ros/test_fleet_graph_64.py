@@ -16,6 +16,7 @@ N, PER_PROCESS, STEPS = 64, 32, 3
 
 
 def test_64_robots_in_containers_use_only_their_own_topics(tmp_path, domain_id, any_model, benchmark_dir):
+    from mapf_world.fleet_demo import policy_model_params
     from mapf_world.fleet_launch import ProcessGroup, executable, node_command
     model = robot_model(any_model, tmp_path)
     group = ProcessGroup(tmp_path / "logs", fleet_env(domain_id))
@@ -29,7 +30,8 @@ def test_64_robots_in_containers_use_only_their_own_topics(tmp_path, domain_id, 
     summary = tmp_path / "summary.json"
     group.start("world", node_command("mapf_world", "world_node", params=dict(
         instance_source="npz", npz_file=str(benchmark_dir / "dhc_40x40_d0.3" / "agents_64.npz"), npz_index=0,
-        n_robots=N, max_steps=STEPS, action_timeout_s=5.0, startup_timeout_s=120.0, summary_path=str(summary))))
+        n_robots=N, max_steps=STEPS, action_timeout_s=5.0, startup_timeout_s=120.0, summary_path=str(summary))
+        | policy_model_params(model)[1]))  # the observation the model reads
     probe = GraphProbe(domain_id)
     graph = {}
     try:

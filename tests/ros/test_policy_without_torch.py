@@ -57,7 +57,7 @@ def test_policy_node_starts_and_answers_where_torch_cannot_be_imported(tmp_path,
         inst = generate_instance(3, size=20, density=0.3, n_agents=4)
         obs = ObservationBuilder(inst.grid, inst.goals).build(inst.starts, np.zeros(4, dtype=np.int64))
         msg = AgentObservation()
-        msg.step, msg.robot_id, msg.fov_size = 0, 1, 9
+        msg.step, msg.robot_id, msg.fov_size, msg.fov_channels, msg.last_action_mode = 0, 1, 9, 6, "requested"
         msg.fov = obs["fov"][1].astype(np.float32).ravel().tolist()
         msg.last_action = obs["last_action"][1].astype(np.float32).tolist()
         msg.position = inst.starts[1].astype(np.int32).tolist()

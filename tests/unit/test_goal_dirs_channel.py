@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from mapf_policy.config import NetworkConfig
-from mapf_policy.export import export_model
+from mapf_policy.export import Q_TOLERANCE, check_export, export_model
 from mapf_policy.model_io import save_model
 from mapf_policy.network import QNetwork, count_parameters, network_inputs
 from mapf_world.env import MapfEnv
@@ -62,7 +62,7 @@ def test_the_env_appends_four_channels_last_and_follows_the_moves():
     assert np.array_equal(plain.reset()[0]["fov"][:, 6:], env.reset()[0]["fov"][:, 8:])
 
 
-def test_a_goal_dirs_network_reads_four_more_channels_and_has_no_robot_export(tmp_path):
+def test_a_goal_dirs_network_reads_four_more_channels_and_its_export_agrees(tmp_path):
     cfg = NetworkConfig(dueling=True, heading=True, priority=True, goal_dirs=True)
     assert cfg.fov_channels == 12 and NetworkConfig(goal_dirs=True).fov_channels == 10
     assert cfg.env_channels() == {"heading": True, "heading_refused": False, "priority": True, "goal_dirs": True,
@@ -77,5 +77,5 @@ def test_a_goal_dirs_network_reads_four_more_channels_and_has_no_robot_export(tm
     q = net(*network_inputs(env.reset()[0], cfg))
     assert q.shape == (2, 5) and torch.isfinite(q).all()
     save_model(tmp_path / "g.pt", QNetwork(NetworkConfig(goal_dirs=True)), NetworkConfig(goal_dirs=True), {})
-    with pytest.raises(ValueError, match="goal-direction"):
-        export_model(tmp_path / "g.pt")
+    result = check_export(tmp_path / "g.pt", export_model(tmp_path / "g.pt"), n=300)  # the robot runtime serves it
+    assert result["max_abs_diff"] <= Q_TOLERANCE and result["greedy_disagreements"] == 0

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from mapf_policy.config import NetworkConfig
-from mapf_policy.export import export_model
+from mapf_policy.export import Q_TOLERANCE, check_export, export_model
 from mapf_policy.model_io import save_model
 from mapf_policy.network import QNetwork, count_parameters, network_inputs
 from mapf_world.env import MapfEnv
@@ -91,8 +91,8 @@ def test_network_with_heading_reads_seven_channels_and_names_a_wrong_input():
         net(torch.zeros(2, 6, 9, 9), torch.zeros(2, 5), torch.zeros(2, 2))
 
 
-def test_heading_models_have_no_robot_export(tmp_path):
+def test_heading_models_have_a_robot_export_that_agrees(tmp_path):
     net = QNetwork(NetworkConfig(dueling=True, heading=True))
     save_model(tmp_path / "h.pt", net, net.cfg, {})
-    with pytest.raises(ValueError, match="heading"):
-        export_model(tmp_path / "h.pt")
+    result = check_export(tmp_path / "h.pt", export_model(tmp_path / "h.pt"), n=300)
+    assert result["max_abs_diff"] <= Q_TOLERANCE and result["greedy_disagreements"] == 0

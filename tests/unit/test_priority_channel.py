@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from mapf_policy.config import NetworkConfig
-from mapf_policy.export import export_model
+from mapf_policy.export import Q_TOLERANCE, check_export, export_model
 from mapf_policy.model_io import save_model
 from mapf_policy.network import QNetwork, count_parameters, network_inputs
 from mapf_world.env import MapfEnv
@@ -53,7 +53,7 @@ def test_the_env_appends_the_channel_after_the_heading_channel_and_follows_the_m
     env.step([RIGHT, STAY])  # still plays
 
 
-def test_a_priority_network_reads_one_more_channel_and_has_no_robot_export(tmp_path):
+def test_a_priority_network_reads_one_more_channel_and_its_export_agrees(tmp_path):
     cfg = NetworkConfig(dueling=True, heading=True, priority=True)
     assert cfg.fov_channels == 8 and NetworkConfig(priority=True).fov_channels == 7
     net, heading_only = QNetwork(cfg), QNetwork(NetworkConfig(dueling=True, heading=True))
@@ -64,5 +64,5 @@ def test_a_priority_network_reads_one_more_channel_and_has_no_robot_export(tmp_p
     q = net(*network_inputs(env.reset()[0], cfg))
     assert q.shape == (2, 5) and torch.isfinite(q).all()
     save_model(tmp_path / "p.pt", QNetwork(NetworkConfig(priority=True)), NetworkConfig(priority=True), {})
-    with pytest.raises(ValueError, match="priority"):
-        export_model(tmp_path / "p.pt")
+    result = check_export(tmp_path / "p.pt", export_model(tmp_path / "p.pt"), n=300)
+    assert result["max_abs_diff"] <= Q_TOLERANCE and result["greedy_disagreements"] == 0

@@ -49,9 +49,14 @@ def test_the_shipped_export_belongs_to_the_shipped_model_and_agrees_on_3000_epis
     assert result["max_abs_diff"] <= Q_TOLERANCE and result["greedy_disagreements"] == 0
 
 
-@pytest.mark.parametrize("variant", ["paper", "dueling", "fov11"] + sorted(ABLATIONS))
+# The second design (issue 20): channels beyond the paper's six and the one-hot still input counting revisits.
+SECOND = {"dueling": True, "heading": True, "priority": True, "goal_dirs": True, "still_bins": 4, "still_count": "revisit"}
+
+
+@pytest.mark.parametrize("variant", ["paper", "dueling", "fov11", "second"] + sorted(ABLATIONS))
 def test_numpy_forward_equals_torch_for_every_architecture(tmp_path, observations, variant):
-    overrides = ({"paper": {}, "dueling": {"dueling": True}, "fov11": {"fov_size": 11}} | ABLATIONS)[variant]
+    overrides = ({"paper": {}, "dueling": {"dueling": True}, "fov11": {"fov_size": 11}, "second": SECOND}
+                 | ABLATIONS)[variant]
     cfg = NetworkConfig(**overrides)
     model = _spread_model(tmp_path / "m.pt", cfg, seed=len(variant))
     export = export_model(model, tmp_path / "m.npz")
@@ -83,7 +88,7 @@ def test_runtime_policy_acts_as_the_torch_policy_under_the_sampled_rule(tmp_path
     export = export_model(model, tmp_path / "m.npz")
     rule = ActionRule(action_temperature=0.5)  # wide sampling: the draws matter for most rows
     torch_policy, runtime = Policy(str(model), rule=rule, seed=7), RuntimePolicy(export, rule=rule, seed=7)
-    fov, last, pos = observations
+    fov, last, pos = observations[:3]
     for k in range(0, 600, 100):  # consecutive calls: the generator and the previous cells carry over
         batch = (fov[k:k + 100], last[k:k + 100], pos[k:k + 100])
         np.testing.assert_array_equal(runtime.act(*batch), torch_policy.act(*batch))
@@ -147,8 +152,8 @@ def test_the_runtime_imports_neither_torch_nor_training_code():
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
-def test_a_model_with_the_still_input_is_refused_by_the_robot_runtime_with_a_reason(tmp_path):
-    cfg = NetworkConfig(dueling=True, still_bins=8)
+def test_a_recurrent_model_is_refused_by_the_robot_runtime_with_a_reason(tmp_path):
+    cfg = NetworkConfig(dueling=True, recurrent=True)
     net = QNetwork(cfg)
-    with pytest.raises(ValueError, match="does not run networks with the still input"):
+    with pytest.raises(ValueError, match="feed-forward"):
         RuntimeNet(cfg, {k: v.numpy() for k, v in net.state_dict().items()})

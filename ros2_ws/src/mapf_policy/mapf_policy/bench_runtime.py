@@ -37,7 +37,10 @@ if kind == "numpy":
 else:
     from mapf_policy.policy import Policy as P
     policy = P(path, seed=0)
-policy.act(np.zeros((1, 6, 9, 9), np.float32), np.eye(5, dtype=np.float32)[:1], np.zeros((1, 2), np.float32))
+cfg = policy.cfg
+still = [np.eye(cfg.still_bins, dtype=np.float32)[:1]] if cfg.still_bins else []
+policy.act(np.zeros((1, cfg.fov_channels, cfg.fov_size, cfg.fov_size), np.float32), np.eye(5, dtype=np.float32)[:1],
+           np.zeros((1, 2), np.float32), *still)
 rss = [l for l in open('/proc/self/status') if l.startswith('VmRSS')][0].split()[1]
 print(f"ready {rss}", flush=True)
 """
@@ -53,13 +56,15 @@ def rss_mb(pid: int) -> float:
 def time_actions(policy, obs: tuple, n: int) -> tuple[np.ndarray, np.ndarray]:
     """(wall, CPU) milliseconds per act() on one agent, over n observations, after 50 untimed calls. The CPU
     time (this thread's) is what one action costs a core; the wall time also holds waits for a busy core."""
-    fov, last, pos = obs
+    def rows(k: int) -> list:
+        return [x[k:k + 1] for x in obs if x is not None]  # fov, last action, position, still input if any
+
     for k in range(50):
-        policy.act(fov[k:k + 1], last[k:k + 1], pos[k:k + 1])
+        policy.act(*rows(k))
     wall, cpu = np.empty(n), np.empty(n)
     for k in range(n):
         t0, c0 = time.perf_counter(), time.thread_time()
-        policy.act(fov[k:k + 1], last[k:k + 1], pos[k:k + 1])
+        policy.act(*rows(k))
         wall[k], cpu[k] = time.perf_counter() - t0, time.thread_time() - c0
     return wall * 1e3, cpu * 1e3
 
@@ -75,9 +80,13 @@ def fresh_process(kind: str, path: Path) -> tuple[float, float]:
     return elapsed, int(out.stdout.split()[-1]) / 1024
 
 
-def first_actions(cmd: list, robots: list[int], domain: int, log: Path) -> tuple[float, float]:
-    """Start `cmd` (policy node or container), publish an observation to each robot until all have answered:
-    (seconds from spawn to the last robot's first action, the process's RSS MB then)."""
+def first_actions(cmd: list, robots: list[int], domain: int, log: Path, export: Path) -> tuple[float, float]:
+    """Start `cmd` (policy node or container, running `export`), publish an all-zero observation shaped for that
+    model to each robot until all have answered: (seconds from spawn to the last robot's first action, the
+    process's RSS MB then)."""
+    from mapf_policy.runtime_policy import RuntimePolicy
+    model = RuntimePolicy(export)
+    cfg, mode = model.cfg, model.last_action_mode
     from mapf_msgs.msg import AgentAction, AgentObservation
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -104,8 +113,9 @@ def first_actions(cmd: list, robots: list[int], domain: int, log: Path) -> tuple
                 last_send = time.perf_counter()
                 for i in robots:
                     if i not in answered and pubs[i].get_subscription_count():
-                        msg = AgentObservation(step=0, robot_id=i, fov_size=9)
-                        msg.fov = [0.0] * 486
+                        msg = AgentObservation(step=0, robot_id=i, fov_size=cfg.fov_size, fov_channels=cfg.fov_channels,
+                                               extra_channels=list(cfg.extra_channels().names), last_action_mode=mode)
+                        msg.fov = [0.0] * (cfg.fov_channels * cfg.fov_size ** 2)
                         msg.last_action = [1.0, 0.0, 0.0, 0.0, 0.0]
                         pubs[i].publish(msg)
             executor.spin_once(timeout_sec=0.005)
@@ -133,7 +143,7 @@ def main(argv=None) -> None:
     export = default_export_path(args.model)
     cores = os.sched_getaffinity(0)
     os.sched_setaffinity(0, {sorted(cores)[0]})  # one core for the action timings
-    obs = episode_observations(args.observations + 50, seed=11)
+    obs = episode_observations(args.observations + 50, seed=11, cfg=RuntimePolicy(export).cfg)
     print(f"model {export} (from {args.model}); {args.observations} observations of generated 40x40 episodes; "
           f"load average {os.getloadavg()[0]:.1f}", flush=True)
     rows = [("numpy", RuntimePolicy(export, seed=0))]
@@ -152,12 +162,12 @@ def main(argv=None) -> None:
     logs = Path(os.environ.get("TMPDIR", "/tmp"))
     elapsed, rss = first_actions(node_command("mapf_policy", "policy_node", namespace="/robot_0",
                                               params=dict(model_path=str(export.resolve()))), [0], domain,
-                                 logs / "bench_runtime_policy_node.log")
+                                 logs / "bench_runtime_policy_node.log", export)
     print(f"policy_node (one robot, one process): spawn -> first action {elapsed:.2f} s, RSS {rss:.0f} MB", flush=True)
     n = args.robots_per_process
     cmd = [str(executable("mapf_policy", "robot_container")), "--robots", f"0-{n - 1}", "--nodes", "policy",
            "--policy-param", f"model_path:={export.resolve()}"]
-    elapsed, rss = first_actions(cmd, list(range(n)), domain, logs / "bench_runtime_container.log")
+    elapsed, rss = first_actions(cmd, list(range(n)), domain, logs / "bench_runtime_container.log", export)
     print(f"robot_container ({n} policy nodes): spawn -> every robot's first action {elapsed:.2f} s, RSS {rss:.0f} MB, "
           f"{rss / n:.1f} MB per robot")
 

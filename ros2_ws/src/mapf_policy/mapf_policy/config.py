@@ -9,6 +9,8 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+from mapf_world.observation import ExtraChannels
+
 # Orders in which the expert's oracle hands the agents to ODrM* (TrainConfig.expert_order); what each
 # means and why it matters: mapf_policy/train/expert.py, agent_order.
 EXPERT_ORDERS = ("index", "reversed", "position")
@@ -121,7 +123,7 @@ class NetworkConfig:
     def fov_channels(self) -> int:
         """Channels of the fov the network reads: the paper's six, plus the heading, priority and goal-direction
         channels if any."""
-        return self.in_channels + int(self.heading) + int(self.priority) + 4 * int(self.goal_dirs)
+        return self.in_channels + self.extra_channels().count
 
     def env_channels(self) -> dict:
         """MapfEnv keyword arguments that give observations with the channels this network reads, and a joint state
@@ -130,12 +132,10 @@ class NetworkConfig:
         return {"heading": self.heading, "heading_refused": self.heading_refused, "priority": self.priority,
                 "goal_dirs": self.goal_dirs, "revisit_cap": revisit_cap}
 
-    def extra_channels(self) -> list[str]:
-        """The fov channels beyond the paper's six that this network reads, as 'the X channel(s) (NetworkConfig.x)':
-        training experiments that the robot runtime, which builds the paper's six, does not serve."""
-        names = {"heading": "the heading channel", "priority": "the priority channel",
-                 "goal_dirs": "the goal-direction channels"}
-        return [f"{what} (NetworkConfig.{key})" for key, what in names.items() if getattr(self, key)]
+    def extra_channels(self) -> ExtraChannels:
+        """The fov channels beyond the paper's six that this network reads (mapf_world.observation.ExtraChannels:
+        its `names`, in fov order, are what the world node must publish; `count` is 0 for the paper's network)."""
+        return ExtraChannels(self.heading, self.heading_refused, self.priority, self.goal_dirs)
 
     def validate(self) -> None:
         if self.fov_size < 9 or self.fov_size % 2 == 0:

@@ -41,9 +41,6 @@ def export_model(model_path, out_path=None) -> Path:
     if cfg.recurrent:
         raise ValueError(f"{model_path} is a recurrent network (NetworkConfig.recurrent, a training experiment beyond "
                          "the paper): the robot runtime is feed-forward and has no export for it")
-    if cfg.extra_channels():
-        raise ValueError(f"{model_path} reads {' and '.join(cfg.extra_channels())}, a training experiment beyond the "
-                         "paper: the robot runtime builds the paper's six channels and has no export for it")
     arrays = {k: v.detach().cpu().float().numpy() for k, v in net.state_dict().items()}
     header = {"format": EXPORT_FORMAT, "version": EXPORT_VERSION, "network_config": cfg.asdict(), "meta": meta,
               "source": {"file": model_path.name, "sha256": file_sha256(model_path)},
@@ -77,36 +74,48 @@ def check_belongs(model_path, export_path) -> dict:
     return header
 
 
-def episode_observations(n: int, seed: int = 0, size: int = 40, agents=(4, 16, 64), steps: int = 24) -> tuple:
-    """(fov, last_action, position) of at least `n` agent-steps from generated size x size episodes (density 0.3),
-    the agents moving at random, so the observations hold crowds, walls and every last action."""
+def episode_observations(n: int, seed: int = 0, size: int = 40, agents=(4, 16, 64), steps: int = 24,
+                         cfg: NetworkConfig | None = None) -> tuple:
+    """(fov, last_action, position, still) of at least `n` agent-steps from generated size x size episodes (density
+    0.3), the agents moving at random, so the observations hold crowds, walls and every last action. With `cfg`, the
+    fov holds the channels that network reads and `still` is its one-hot still input (None for a network without
+    one, and without `cfg`)."""
     from mapf_world.env import MapfEnv
     from mapf_world.instances import generate_instance
+    from mapf_policy.config import STILL_KEYS
+    from mapf_policy.runtime_net import still_onehot
+    cfg = cfg or NetworkConfig()
     rng = np.random.default_rng(seed)
     parts, total, k = [], 0, 0
     while total < n:
         inst = generate_instance(rng, size=size, density=0.3, n_agents=agents[k % len(agents)])
         k += 1
-        env = MapfEnv(inst.grid, inst.starts, inst.goals)
+        env = MapfEnv(inst.grid, inst.starts, inst.goals, **cfg.env_channels())
         obs, _ = env.reset()
         for _ in range(steps):
-            parts.append(tuple(np.asarray(obs[key], dtype=np.float32) for key in ("fov", "last_action", "position")))
+            row = tuple(np.asarray(obs[key], dtype=np.float32) for key in ("fov", "last_action", "position"))
+            still = still_onehot(obs[STILL_KEYS[cfg.still_count]], cfg.still_bins) if cfg.still_bins else None
+            parts.append(row + (still,))
             total += len(parts[-1][0])
-            obs = env.step(rng.integers(0, 5, inst.n_agents))[0]
-    return tuple(np.concatenate([p[i] for p in parts])[:n] for i in range(3))
+            # Random moves with a bias to staying, so that the revisit and still counts reach their last bins.
+            obs = env.step(np.where(rng.random(inst.n_agents) < 0.3, 0, rng.integers(0, 5, inst.n_agents)))[0]
+    out = tuple(np.concatenate([p[i] for p in parts])[:n] for i in range(3))
+    return out + ((np.concatenate([p[3] for p in parts])[:n] if cfg.still_bins else None),)
 
 
 def compare_q(model_path, export_path, n: int = 3000, seed: int = 0) -> dict:
-    """Q-values of the torch network (QNetwork.forward) and of the export on `n` episode observations:
-    {"observations", "max_abs_diff", "greedy_disagreements"}."""
+    """Q-values of the torch network (QNetwork.forward) and of the export on `n` episode observations built with the
+    network's channels and still input: {"observations", "max_abs_diff", "greedy_disagreements"}."""
     import torch
     from mapf_policy.model_io import load_model
-    net, _, _ = load_model(model_path)
+    net, cfg, _ = load_model(model_path)
     runtime = RuntimeNet.load(export_path)
-    fov, last, pos = episode_observations(n, seed)
+    fov, last, pos, still = episode_observations(n, seed, cfg=cfg)
     with torch.inference_mode():
-        ref = net(torch.from_numpy(fov), torch.from_numpy(last), torch.from_numpy(pos)).numpy()
-    got = np.concatenate([runtime(fov[i:i + 256], last[i:i + 256], pos[i:i + 256]) for i in range(0, n, 256)])
+        inputs = [torch.from_numpy(x) for x in (fov, last, pos) + ((still,) if still is not None else ())]
+        ref = net(*inputs).numpy()
+    got = np.concatenate([runtime(fov[i:i + 256], last[i:i + 256], pos[i:i + 256],
+                                  None if still is None else still[i:i + 256]) for i in range(0, n, 256)])
     return {"observations": n, "max_abs_diff": float(np.abs(got - ref).max()),
             "greedy_disagreements": int((got.argmax(1) != ref.argmax(1)).sum())}
 

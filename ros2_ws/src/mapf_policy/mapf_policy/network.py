@@ -25,6 +25,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from mapf_policy.config import STILL_KEYS, NetworkConfig
+from mapf_policy.runtime_net import still_onehot as runtime_still_onehot
 
 
 class SelfAttention(nn.Module):
@@ -196,11 +197,9 @@ def count_parameters(net: nn.Module) -> int:
 
 def still_onehot(still, bins: int) -> torch.Tensor:
     """(B,) counts of steps on the same cell -> (B, bins) one-hot; counts of bins - 1 or more share the last bin
-    (a saturating feature by design: beyond it, how long the agent has waited makes no difference)."""
-    counts = torch.as_tensor(np.asarray(still), dtype=torch.long)
-    if counts.dim() != 1 or bool((counts < 0).any()):
-        raise ValueError(f"still must be a (B,) array of counts >= 0, got shape {tuple(counts.shape)}")
-    return torch.eye(bins)[counts.clamp(max=bins - 1)]
+    (a saturating feature by design: beyond it, how long the agent has waited makes no difference). The robot
+    runtime's numpy function (runtime_net.still_onehot) as a tensor."""
+    return torch.from_numpy(runtime_still_onehot(still, bins))
 
 
 def network_inputs(obs: dict, cfg: NetworkConfig) -> tuple:

@@ -88,6 +88,7 @@ class PolicyNode(Node):
 
         t0 = time.perf_counter()
         self.policy = RuntimePolicy(model_path, rule=rule, seed=seed)
+        self.policy.check_servable()
         source = self.policy.header["source"]
         expected = str(self.get_parameter("source_sha256").value)
         if expected and source.get("sha256") != expected:
@@ -97,28 +98,28 @@ class PolicyNode(Node):
         self.fov_size = int(self.policy.cfg.fov_size)
         l = self.fov_size
         # Warm-up: the first forward pass is slower; do it before announcing the action publisher.
-        self.policy.act(np.zeros((1, 6, l, l), np.float32), np.eye(5, dtype=np.float32)[:1], np.zeros((1, 2), np.float32))
+        cfg = self.policy.cfg
+        self.policy.act(np.zeros((1, cfg.fov_channels, l, l), np.float32), np.eye(5, dtype=np.float32)[:1],
+                        np.zeros((1, 2), np.float32), np.eye(cfg.still_bins, dtype=np.float32)[:1] if cfg.still_bins else None)
         self.policy.reset(seed)  # the warm-up must not shift this robot's draws nor leave a previous cell
         self.get_logger().info(f"robot {self.robot_id}: model {model_path} (from {source.get('file')} "
-                               f"{str(source.get('sha256'))[:12]}, fov {l}, action rule {rule.asdict()}, seed {seed}) "
+                               f"{str(source.get('sha256'))[:12]}, fov {l}, extra channels {list(cfg.extra_channels().names)}, "
+                               f"still input {cfg.still_bins and cfg.still_count}, last action {self.policy.last_action_mode}, action rule {rule.asdict()}, seed {seed}) "
                                f"ready in {time.perf_counter() - t0:.2f} s")
         self.action_pub = self.create_publisher(AgentAction, "action", DEFAULT_DEPTH)
         self.create_subscription(AgentObservation, "observation", self.on_observation, 10)
 
     def on_observation(self, msg: AgentObservation) -> None:
         log = self.get_logger()
-        l = self.fov_size
         if msg.robot_id != self.robot_id:
             log.error(f"observation for robot {msg.robot_id} on robot {self.robot_id}'s topic: not answered")
             return
-        if msg.fov_size != l or len(msg.fov) != 6 * l * l:
-            log.error(f"step {msg.step}: observation fov_size {msg.fov_size} with {len(msg.fov)} values, but the "
-                      f"model needs fov_size {l} ({6 * l * l} values): not answered")
+        try:
+            inputs = self.policy.message_inputs(msg)
+        except ValueError as exc:
+            log.error(f"step {msg.step}: {exc}: not answered")
             return
-        fov = np.asarray(msg.fov, dtype=np.float32).reshape(1, 6, l, l)
-        last_action = np.asarray(msg.last_action, dtype=np.float32).reshape(1, 5)
-        position = np.asarray(msg.position, dtype=np.float32).reshape(1, 2)
-        action = int(self.policy.act(fov, last_action, position)[0])
+        action = int(self.policy.act(*inputs)[0])
         out = AgentAction()
         out.header.stamp = self.get_clock().now().to_msg()
         out.step = msg.step

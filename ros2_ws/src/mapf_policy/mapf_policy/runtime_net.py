@@ -10,7 +10,9 @@ It loads with `np.load(allow_pickle=False)`: nothing is unpickled.
 
 `RuntimeNet` computes QNetwork.forward (mapf_policy/network.py) with numpy in float32; Q-values agree with
 torch's to about 1e-6 (tests/unit/test_runtime_net.py checks 1e-4 on observations of generated episodes).
-It supports what NetworkConfig describes: the ablations (attention modules off) and the dueling head.
+It supports what NetworkConfig describes but the memory: the ablations (attention modules off), the dueling head, and
+the second design's inputs beyond the paper (the channels after the paper's six, NetworkConfig.extra_channels, and
+the one-hot still input, NetworkConfig.still_bins; `still_onehot`).
 Why numpy rather than ONNX Runtime: models/README.md, "Robot runtime without torch".
 
 Layouts. The trunk runs channels-last, (B, H, W, C), so that each 3x3 valid convolution is one matrix
@@ -56,7 +58,7 @@ def weights_fingerprint(arrays: dict) -> str:
 
 def expected_shapes(cfg: NetworkConfig) -> dict:
     """name -> shape of every tensor QNetwork(cfg).state_dict() holds (mirrors network.py)."""
-    shapes, c_in = {}, cfg.in_channels
+    shapes, c_in = {}, cfg.fov_channels
     if cfg.self_attention:
         for m in ("f", "g", "h"):
             shapes[f"attention.{m}.weight"] = (c_in, c_in, 1)
@@ -70,9 +72,11 @@ def expected_shapes(cfg: NetworkConfig) -> dict:
     if cfg.spatial_attention:
         shapes["spatial_attention.conv.weight"] = (1, 2, cfg.spatial_kernel, cfg.spatial_kernel)
     side = cfg.fov_size - 2 * len(cfg.conv_channels)
-    hidden_in = c_in * side * side + cfg.action_features + cfg.position_features
+    hidden_in = (c_in * side * side + cfg.action_features + cfg.position_features
+                 + (cfg.still_features if cfg.still_bins else 0))
     for name, (n_out, n_in) in (("action_fc", (cfg.action_features, cfg.n_actions)),
-                                ("position_fc", (cfg.position_features, 2)),
+                                ("position_fc", (cfg.position_features, 2))) + (
+            (("still_fc", (cfg.still_features, cfg.still_bins)),) if cfg.still_bins else ()) + (
                                 ("hidden_fc", (cfg.hidden_features, hidden_in)),
                                 ("q_fc", (cfg.n_actions, cfg.hidden_features))) + (
             (("value_fc", (1, cfg.hidden_features)),) if cfg.dueling else ()):
@@ -130,13 +134,20 @@ def read_export(path) -> tuple[dict, dict]:
         raise ValueError(f"{path}: bad network_config: {exc}") from exc
     if cfg.recurrent:
         raise ValueError(f"{path}: a recurrent network (NetworkConfig.recurrent); this runtime is feed-forward")
-    if cfg.extra_channels():
-        raise ValueError(f"{path}: a network with {' and '.join(cfg.extra_channels())}; this runtime reads six")
     check_weights(arrays, cfg, str(path))
     if weights_fingerprint(arrays) != header["weights_sha256"]:
         raise ValueError(f"{path}: the weights do not match the fingerprint written at export: the file is damaged "
                          f"or was edited; export it again with scripts/export_model")
     return header, arrays
+
+
+def still_onehot(counts, bins: int) -> np.ndarray:
+    """(B,) counts -> (B, bins) float32 one-hot; counts of bins - 1 or more share the last bin (NetworkConfig.still_bins:
+    a saturating feature by design). ValueError for anything but a 1-D array of integer counts >= 0."""
+    c = np.asarray(counts)
+    if c.ndim != 1 or not (np.issubdtype(c.dtype, np.integer) or (c.size and np.all(c == np.round(c)))) or (c < 0).any():
+        raise ValueError(f"still must be a (B,) array of integer counts >= 0, got {c!r}")
+    return np.eye(bins, dtype=np.float32)[np.minimum(c.astype(np.int64), bins - 1)]
 
 
 def _patch_index(side: int, channels: int) -> np.ndarray:
@@ -171,9 +182,8 @@ class RuntimeNet:
     """QNetwork's forward pass in numpy: `RuntimeNet.load(path)(fov, last_action, position) -> (B, 5)` float32."""
 
     def __init__(self, cfg: NetworkConfig, weights: dict, header: dict | None = None):
-        if cfg.still_bins:
-            raise ValueError("the robot runtime does not run networks with the still input (NetworkConfig.still_bins "
-                             f"= {cfg.still_bins}, an experiment of issue 20); run such a model with torch")
+        if cfg.recurrent:
+            raise ValueError("a recurrent network (NetworkConfig.recurrent); this runtime is feed-forward")
         check_weights(weights, cfg, "weights")
         self.cfg, self.header = cfg, dict(header or {})
         w = {k: np.asarray(v, dtype=np.float32) for k, v in weights.items()}
@@ -193,16 +203,19 @@ class RuntimeNet:
         # The spatial attention's padded k x k convolution over the (2, s, s) pooled maps, as one matrix.
         self.spatial = _conv_matrix(w["spatial_attention.conv.weight"][0], side) if cfg.spatial_attention else None
         self.fc = {name: (w[f"{name}.weight"].T.copy(), w[f"{name}.bias"])
-                   for name in ("action_fc", "position_fc", "hidden_fc", "q_fc", "value_fc") if f"{name}.weight" in w}
+                   for name in ("action_fc", "position_fc", "still_fc", "hidden_fc", "q_fc", "value_fc")
+                   if f"{name}.weight" in w}
 
     @classmethod
     def load(cls, path) -> "RuntimeNet":
         header, arrays = read_export(path)
         return cls(NetworkConfig.from_dict(header["network_config"]), arrays, header)
 
-    def check_inputs(self, fov: np.ndarray, last_action: np.ndarray, position: np.ndarray) -> None:
-        """ValueError naming the input whose shape does not fit (B, 6, l, l), (B, 5), (B, 2)."""
-        l, c, a = self.cfg.fov_size, self.cfg.in_channels, self.cfg.n_actions
+    def check_inputs(self, fov: np.ndarray, last_action: np.ndarray, position: np.ndarray,
+                     still: np.ndarray | None = None) -> None:
+        """ValueError naming the input whose shape does not fit (B, C, l, l) (C = NetworkConfig.fov_channels),
+        (B, 5), (B, 2), and (B, still_bins) for a network with the still input (None otherwise)."""
+        l, c, a = self.cfg.fov_size, self.cfg.fov_channels, self.cfg.n_actions
         if fov.ndim != 4 or fov.shape[1:] != (c, l, l):
             raise ValueError(f"fov must have shape (B, {c}, {l}, {l}), got {fov.shape}")
         b = fov.shape[0]
@@ -210,12 +223,19 @@ class RuntimeNet:
             raise ValueError(f"last_action must have shape ({b}, {a}) (one-hot), got {last_action.shape}")
         if position.shape != (b, 2):
             raise ValueError(f"position must have shape ({b}, 2) (row, col), got {position.shape}")
+        bins = self.cfg.still_bins
+        if bins and (still is None or still.shape != (b, bins)):
+            raise ValueError(f"this network takes a still input of shape ({b}, {bins}) (one-hot, still_onehot), got "
+                             f"{None if still is None else still.shape}")
+        if not bins and still is not None:
+            raise ValueError("this network has no still input (NetworkConfig.still_bins is 0), but one was given")
 
-    def __call__(self, fov, last_action, position) -> np.ndarray:
+    def __call__(self, fov, last_action, position, still=None) -> np.ndarray:
         fov = np.asarray(fov, dtype=np.float32)
         last_action = np.asarray(last_action, dtype=np.float32)
         position = np.asarray(position, dtype=np.float32)
-        self.check_inputs(fov, last_action, position)
+        still = None if still is None else np.asarray(still, dtype=np.float32)
+        self.check_inputs(fov, last_action, position, still)
         b, c, hgt, wid = fov.shape
         flat = fov.reshape(b, c, hgt * wid)  # (B, C, N)
         if self.attention is not None:  # eqs. (1)-(4): y = x + eta * o
@@ -231,9 +251,10 @@ class RuntimeNet:
             side = x.shape[1] - 2
             patches = x.reshape(b, -1)[:, index].reshape(b * side * side, -1)
             x = np.maximum(patches @ weight + bias, 0.0).reshape(b, side, side, -1)
-        return self._head(x, last_action, position)
+        return self._head(x, last_action, position, still)
 
-    def _head(self, x: np.ndarray, last_action: np.ndarray, position: np.ndarray) -> np.ndarray:
+    def _head(self, x: np.ndarray, last_action: np.ndarray, position: np.ndarray,
+              still: np.ndarray | None = None) -> np.ndarray:
         """QNetwork.head on the channels-last trunk output (B, s, s, C): CBAM, then the fully connected layers."""
         b = x.shape[0]
         if self.channel_mlp is not None:
@@ -249,7 +270,10 @@ class RuntimeNet:
         act = np.maximum(last_action @ self.fc["action_fc"][0] + self.fc["action_fc"][1], 0.0)
         pos = position / np.float32(self.cfg.position_scale)
         pos = np.maximum(pos @ self.fc["position_fc"][0] + self.fc["position_fc"][1], 0.0)
-        z = np.concatenate([feats, act, pos], axis=1)
+        parts = [feats, act, pos]
+        if still is not None:  # torch's order: trunk features, last action, position, still input
+            parts.append(np.maximum(still @ self.fc["still_fc"][0] + self.fc["still_fc"][1], 0.0))
+        z = np.concatenate(parts, axis=1)
         hidden = np.maximum(z @ self.fc["hidden_fc"][0] + self.fc["hidden_fc"][1], 0.0)
         q = hidden @ self.fc["q_fc"][0] + self.fc["q_fc"][1]
         if "value_fc" not in self.fc:

@@ -40,7 +40,7 @@ import numpy as np
 from mapf_world.grid import STAY, check_actions
 from mapf_world.heuristics import UNREACHABLE, distance_maps
 from mapf_world.instances import check_instance
-from mapf_world.observation import ObservationBuilder, check_fov_size
+from mapf_world.observation import ExtraChannels, ObservationBuilder, check_fov_size, extra_fov
 from mapf_world.rules import resolve_moves
 
 REWARD_MOVE = -0.075
@@ -74,8 +74,8 @@ class MapfEnv:
         if isinstance(revisit_cap, bool) or not isinstance(revisit_cap, (int, np.integer)) or revisit_cap < 0:
             raise ValueError(f"revisit_cap must be an integer >= 0, got {revisit_cap!r}")
         self.revisit_cap = int(revisit_cap)
-        if self.heading_refused and not self.heading:
-            raise ValueError("heading_refused=True needs heading=True (it says what the heading channel marks)")
+        # The optional channels, in fov order (ValueError for heading_refused without heading).
+        self.extra = ExtraChannels(self.heading, self.heading_refused, self.priority, self.goal_dirs)
         self._dist: np.ndarray | None = None
         self._builder: ObservationBuilder | None = None
         self._positions = self._starts.copy()
@@ -173,16 +173,9 @@ class MapfEnv:
         """fov, last_action, position (ObservationBuilder.build); still, refused_run, contact_run and revisits: (N,)
         counts (module docstring)."""
         obs = self.observation_builder.build(self._positions, self._last_actions)
-        if self.heading:
-            facing = self.observation_builder.headings(
-                self._positions, np.where(self._refused_run > 0, self._requested, STAY) if self.heading_refused
-                else self._requested)
-            obs["fov"] = np.concatenate([obs["fov"], facing[:, None]], axis=1)
-        if self.priority:
-            ahead = self.observation_builder.priorities(self._positions)
-            obs["fov"] = np.concatenate([obs["fov"], ahead[:, None]], axis=1)
-        if self.goal_dirs:
-            obs["fov"] = np.concatenate([obs["fov"], self.observation_builder.goal_directions(self._positions)], axis=1)
+        if self.extra.count:
+            more = extra_fov(self.observation_builder, self.extra, self._positions, self._requested, self._refused_run > 0)
+            obs["fov"] = np.concatenate([obs["fov"], more], axis=1)
         return obs | {
             "still": self._still.copy(), "refused_run": self._refused_run.copy(), "contact_run": self._contact_run.copy(),
             "revisits": self._revisits.copy()}
@@ -238,6 +231,16 @@ class MapfEnv:
         self._done = terminated or truncated
         info = {"failed": failed, "on_goal": on_goal, "step": self._step, "success": success}
         return self.observe(), rewards, terminated, truncated, info
+
+
+def revisit_counts(history) -> np.ndarray:
+    """(N,) the `revisits` counts of MapfEnv's observation from the positions of an episode so far: history[0] the
+    starts, history[-1] the current cells ((T+1, N, 2), or a list of (N, 2)). The world node counts them so (its
+    FleetCore keeps the positions of every step) for a robot whose network reads them."""
+    h = np.asarray(history)
+    if h.ndim != 3 or h.shape[0] < 1 or h.shape[2] != 2:
+        raise ValueError(f"history must have shape (T+1, N, 2), got {h.shape}")
+    return np.all(h[-1 - REVISIT_WINDOW:-1] == h[-1][None], axis=2).sum(axis=0).astype(np.int64)
 
 
 def _contacts(positions: np.ndarray) -> np.ndarray:

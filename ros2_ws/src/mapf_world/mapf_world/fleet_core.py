@@ -186,6 +186,24 @@ class FleetCore:
     def all_answered(self) -> bool:
         return bool(self._final.all())
 
+    def observe(self, builder, extra=None) -> dict:
+        """Every robot's observation of the current step, as MapfEnv.observe builds it for training: fov (the
+        paper's six channels, then the optional `extra` ones, an ExtraChannels), last_action, position, and
+        `revisits` (MapfEnv's count, from the positions of the steps so far). `builder`: an ObservationBuilder of
+        this instance. The heading channel reads each robot's last requested action (stay for a robot that sent
+        none), as MapfEnv's does."""
+        from mapf_world.env import REVISIT_WINDOW, revisit_counts
+        from mapf_world.observation import extra_fov
+        obs = builder.build(self.positions, self.last_actions)
+        if extra is not None and extra.count:
+            last = self.moves[-1] if self.moves else None
+            requested = last.requested if last else np.zeros(self.n, dtype=np.int64)
+            refused = last.outcomes == OUTCOME_BLOCKED if last else np.zeros(self.n, dtype=bool)
+            obs["fov"] = np.concatenate([obs["fov"], extra_fov(builder, extra, self.positions, requested, refused)],
+                                        axis=1)
+        obs["revisits"] = revisit_counts(self.history[-1 - REVISIT_WINDOW:])
+        return obs
+
     # --- protocol --------------------------------------------------------------------------------
     def begin_step(self) -> int:
         """Start collecting actions for the current step; returns the step number."""

@@ -138,15 +138,23 @@ def check_instance(cfg: DemoConfig):
     return load_fleet_instance(params.pop("instance_source"), n_robots=cfg.robots, **params)
 
 
-def policy_model_params(model: Path) -> tuple[dict, str]:
-    """(policy_node parameters, the model's last-action mode) for `model`: an exported .npz as is; a .pt through
-    its export (same path, .npz), which must exist and come from this very file (source_sha256); ValueError
-    saying how to make it. The last-action mode (the export's metadata; older models: 'requested') is how the
-    world node must build the robots' observations."""
+def policy_model_params(model: Path) -> tuple[dict, dict]:
+    """(policy_node parameters, world_node observation parameters) for `model`: an exported .npz as is; a .pt
+    through its export (same path, .npz), which must exist and come from this very file (source_sha256); ValueError
+    saying how to make it. The world's parameters say how it must build the robots' observations for this model:
+    `last_action` (the export's metadata; older models: 'requested') and, for a model that reads channels beyond
+    the paper's six, `extra_channels` (their names, from the export's network config)."""
+    from mapf_policy.config import NetworkConfig
     from mapf_policy.runtime_net import file_sha256, read_export
+
+    def world(header: dict) -> dict:
+        names = list(NetworkConfig.from_dict(header["network_config"]).extra_channels().names)
+        return {"last_action": header["meta"].get("last_action", "requested")} | (
+            {"extra_channels": names} if names else {})
+
     if model.suffix == ".npz":
         header, _ = read_export(model)
-        return dict(model_path=str(model)), header["meta"].get("last_action", "requested")
+        return dict(model_path=str(model)), world(header)
     export = model.with_suffix(".npz")
     if not export.is_file():
         raise ValueError(f"the robots run the export of {model}, and {export} does not exist: "
@@ -157,7 +165,7 @@ def policy_model_params(model: Path) -> tuple[dict, str]:
         raise ValueError(f"{export} was not exported from {model} (its source SHA-256 is "
                          f"{str(header['source'].get('sha256'))[:12]}..., the model's {sha[:12]}...): "
                          f"scripts/export_model {model}")
-    return dict(model_path=str(export), source_sha256=sha), header["meta"].get("last_action", "requested")
+    return dict(model_path=str(export), source_sha256=sha), world(header)
 
 
 def robot_chunks(cfg: DemoConfig) -> list[list[int]]:
@@ -236,7 +244,7 @@ def run(cfg: DemoConfig) -> int:
         from mapf_policy.action_selection import RULES
         from mapf_policy.policy_node import RULE_PARAMETERS
         rule = RULES[cfg.action_rule]
-        model_params, last_action = policy_model_params(model)
+        model_params, observation_params = policy_model_params(model)
         policy_params = model_params | {k: getattr(rule, k) for k in RULE_PARAMETERS}
         drilled = parse_ids(cfg.kill_policies)
         if any(i >= cfg.robots for i in drilled):
@@ -253,8 +261,8 @@ def run(cfg: DemoConfig) -> int:
     mcap, summary_path = out / "fleet.mcap", out / "summary.json"
 
     world_params = dict(max_steps=cfg.max_steps, cell_size=cfg.cell_size, action_timeout_s=cfg.action_timeout_s,
-                        summary_path=str(summary_path), n_robots=cfg.robots, wait_for_recorder="recorder",
-                        last_action=last_action) \
+                        summary_path=str(summary_path), n_robots=cfg.robots, wait_for_recorder="recorder") \
+        | observation_params \
         | world_instance_params(cfg)
     drive_params = dict(cell_size=cfg.cell_size, real_time_factor=cfg.real_time_factor, rate_hz=cfg.rate_hz,
                         idle_rate_hz=cfg.idle_rate_hz)

@@ -22,12 +22,16 @@ COLORS = [(0.85, 0.1, 0.1), (0.1, 0.65, 0.1), (0.1, 0.25, 0.9), (0.9, 0.6, 0.0),
           (0.0, 0.7, 0.7), (0.5, 0.3, 0.1), (0.9, 0.3, 0.6)]
 
 
-def observations(obs: dict, core: FleetCore, header: Header) -> list:
-    """One AgentObservation per robot from ObservationBuilder.build output."""
+def observations(obs: dict, core: FleetCore, header: Header, extra_channels: Sequence[str] = ()) -> list:
+    """One AgentObservation per robot from FleetCore.observe output; `extra_channels`: the names of the channels
+    after the paper's six (ExtraChannels.names) that obs["fov"] holds."""
     out = []
     on_goal = core.on_goal
+    names = [str(n) for n in extra_channels]
     for i in range(core.n):
-        msg = AgentObservation(header=header, step=core.step, robot_id=i, fov_size=obs["fov"].shape[-1])
+        msg = AgentObservation(header=header, step=core.step, robot_id=i, fov_size=obs["fov"].shape[-1],
+                               fov_channels=obs["fov"].shape[1], extra_channels=names,
+                               last_action_mode=core.last_action_mode, revisits=int(obs["revisits"][i]))
         msg.fov = array.array("f", obs["fov"][i].tobytes())
         msg.last_action = obs["last_action"][i]
         msg.position = core.positions[i].astype(np.int32)

@@ -80,6 +80,9 @@ def run(cfg: SoakConfig, progress=None) -> dict:
     root = Path(os.environ.get("MAPF_ROOT", Path.cwd()))
     model = Path(cfg.model) if cfg.model else (root / "models" / "hscl.npz" if (root / "models" / "hscl.npz").is_file()
                                                else root / "models" / "hscl.pt")
+    from mapf_world.fleet_demo import policy_model_params
+    # The robots run the export; the world builds the observation the model reads (last action, extra channels).
+    policy_params, observation_params = policy_model_params(model)
     out = Path(cfg.out or f"runs/soak/{time.strftime('%Y%m%d-%H%M%S')}")
     (out / "episodes").mkdir(parents=True, exist_ok=True)
     domain, lock = claim_domain_id(from_top=True)
@@ -93,7 +96,7 @@ def run(cfg: SoakConfig, progress=None) -> dict:
         group.start(f"drive_{i}", node_command("mapf_policy", "drive_executor", namespace=ns,
                                                params=dict(real_time_factor=cfg.real_time_factor, rate_hz=cfg.rate_hz)))
         group.start(f"policy_{i}", node_command("mapf_policy", "policy_node", namespace=ns,
-                                                params=dict(model_path=str(model))))
+                                                params=policy_params))
     steady = ["recorder"] + robots
     t0 = time.monotonic()
     totals = dict(steps=0, episodes=0, successes=0, failed_moves=0, timeouts=0, rejected=0, aborted=0)
@@ -123,7 +126,7 @@ def run(cfg: SoakConfig, progress=None) -> dict:
             group.start(name, node_command("mapf_world", "world_node", params=dict(
                 instance_source="random", seed=cfg.seed + e, size=cfg.size, density=cfg.density,
                 n_robots=cfg.robots, max_steps=max_steps, summary_path=str(summary_path), linger_s=0.0,
-                wait_for_recorder="recorder")))
+                wait_for_recorder="recorder") | observation_params))
             end = time.monotonic() + cfg.episode_timeout_s
             proc = group.procs[name]
             while proc.poll() is None and time.monotonic() < end:
@@ -226,7 +229,11 @@ def main(argv=None) -> int:
     def progress(partial):  # a long soak that is stopped or dies still leaves its figures so far
         (out / "soak.progress.json").write_text(json.dumps(partial, indent=1) + "\n")
 
-    report = run(cfg, progress)
+    try:
+        report = run(cfg, progress)
+    except ValueError as exc:  # a model the robots cannot run (no export, or a stale one): the message says the fix
+        print(f"soak: error: {exc}", file=sys.stderr)
+        return 2
     (out / "soak.json").write_text(json.dumps(report, indent=1) + "\n")
     t, m = report["totals"], report["messages"]
     print(f"soak: {t['steps']} grid steps in {t['episodes']} episodes ({t['successes']} solved), {cfg.robots} robots, "

@@ -31,6 +31,7 @@ arrays, and the window of an agent at (r, c) starts at padded (r, c).
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
@@ -39,6 +40,74 @@ from mapf_world.grid import DELTAS, N_ACTIONS, STAY, check_actions, check_cells,
 from mapf_world.heuristics import distance_maps
 
 N_CHANNELS = 6
+
+
+@dataclass(frozen=True)
+class ExtraChannels:
+    """Which of the optional fov channels (all beyond the paper; module docstring) follow the paper's six, in this
+    order: heading (1 channel; with heading_refused it marks only refused moves), priority (1), goal_dirs (4).
+    MapfEnv builds them for training; the world node builds them for the robots (the ground station sees every
+    robot, so no robot tells another anything); AgentObservation names them (`names`)."""
+    heading: bool = False
+    heading_refused: bool = False
+    priority: bool = False
+    goal_dirs: bool = False
+
+    # name -> channels it takes; the names are what AgentObservation.extra_channels carries
+    WIDTHS = {"heading": 1, "heading_refused": 1, "priority": 1, "goal_dirs": 4}
+
+    def __post_init__(self):
+        for name in ("heading", "heading_refused", "priority", "goal_dirs"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"ExtraChannels.{name} must be a bool, got {getattr(self, name)!r}")
+        if self.heading_refused and not self.heading:
+            raise ValueError("heading_refused=True needs heading=True (it says what the heading channel marks)")
+
+    @property
+    def names(self) -> tuple:
+        """The optional channels present, in fov order, e.g. ('heading', 'priority', 'goal_dirs')."""
+        return ((("heading_refused" if self.heading_refused else "heading",) if self.heading else ())
+                + (("priority",) if self.priority else ()) + (("goal_dirs",) if self.goal_dirs else ()))
+
+    @property
+    def count(self) -> int:
+        """Channels they add to the paper's six."""
+        return sum(self.WIDTHS[n] for n in self.names)
+
+    @classmethod
+    def from_names(cls, names) -> "ExtraChannels":
+        """The inverse of `names`; ValueError naming an unknown, repeated or misplaced name."""
+        names = tuple(str(n) for n in names)
+        unknown = [n for n in names if n not in cls.WIDTHS]
+        if unknown:
+            raise ValueError(f"unknown extra channels {unknown}; known: {sorted(cls.WIDTHS)}")
+        out = cls(heading="heading" in names or "heading_refused" in names, heading_refused="heading_refused" in names,
+                  priority="priority" in names, goal_dirs="goal_dirs" in names)
+        if out.names != names:
+            raise ValueError(f"extra channels {list(names)} are not a valid set in fov order; expected a subset of "
+                             f"['heading' or 'heading_refused', 'priority', 'goal_dirs'] in that order")
+        return out
+
+
+def extra_fov(builder: "ObservationBuilder", extra: ExtraChannels, positions, requested, refused) -> np.ndarray:
+    """(N, extra.count, l, l) float32: the optional channels of every agent, to append to the paper's six.
+    `requested`: each agent's last requested action (0 before the first step and for an agent that sent none);
+    `refused`: (N,) bool, whether that request was refused by the grid rules (read only with heading_refused)."""
+    parts = []
+    if extra.heading:
+        req = check_actions(requested, builder.n_agents)
+        if extra.heading_refused:
+            refused = np.asarray(refused, dtype=bool)
+            if refused.shape != (builder.n_agents,):
+                raise ValueError(f"refused must have shape ({builder.n_agents},), got {refused.shape}")
+            req = np.where(refused, req, STAY)
+        parts.append(builder.headings(positions, req)[:, None])
+    if extra.priority:
+        parts.append(builder.priorities(positions)[:, None])
+    if extra.goal_dirs:
+        parts.append(builder.goal_directions(positions))
+    size = builder.fov_size
+    return np.concatenate(parts, axis=1) if parts else np.zeros((builder.n_agents, 0, size, size), np.float32)
 
 
 def heuristic_bits(grid: np.ndarray, dist: np.ndarray) -> np.ndarray:

@@ -33,7 +33,7 @@ from mapf_world.fleet_core import (INSTANCE_SOURCES, Deadline, FleetCore, Phase,
                                    describe_moves, load_fleet_instance, pose_error)
 from mapf_world.fleet_qos import DEFAULT_DEPTH, LATCHED, STATUS_DEPTH, history_depth
 from mapf_world.node_main import create_node
-from mapf_world.observation import ObservationBuilder
+from mapf_world.observation import ExtraChannels, ObservationBuilder
 
 
 class RobotTrack:
@@ -60,6 +60,7 @@ class WorldNode(Node):
         self.instance = inst
         self.core = FleetCore(inst.grid, inst.starts, inst.goals, p["max_steps"], last_action=p["last_action"])
         self.builder = ObservationBuilder(inst.grid, inst.goals, fov_size=p["fov_size"])
+        self.extra = ExtraChannels.from_names(p["extra_channels"])  # checked in _declare_parameters
         self.n = self.core.n
         self.cell_size = p["cell_size"]
         self.tracks = [RobotTrack() for _ in range(self.n)]
@@ -98,7 +99,8 @@ class WorldNode(Node):
         self.get_logger().info(
             f"instance {inst.name}: {inst.grid.shape[0]}x{inst.grid.shape[1]} map, {self.n} robots, "
             f"starts {inst.starts.tolist()}, goals {inst.goals.tolist()}; cell {self.cell_size} m, "
-            f"max_steps {p['max_steps']}, pose_source {p['pose_source']}")
+            f"max_steps {p['max_steps']}, pose_source {p['pose_source']}; observations: the paper's six channels"
+            + (f" + {list(self.extra.names)}" if self.extra.names else "") + f", last action {p['last_action']}")
 
     # --- parameters ------------------------------------------------------------------------------
     def _declare_parameters(self) -> dict:
@@ -112,7 +114,7 @@ class WorldNode(Node):
             lockstep_drive=True, max_angular_speed=1.57,
             robot_namespace_prefix="robot_", frame_id="map",
             summary_path="", marker_period_s=0.2, linger_s=1.0, ready_grace_s=1.0, wait_for_recorder="",
-            last_action="requested",
+            last_action="requested", extra_channels=[""],
         )
         p = {k: self.declare_parameter(k, v).value for k, v in defaults.items()}
         if p["instance_source"] not in INSTANCE_SOURCES:
@@ -133,6 +135,10 @@ class WorldNode(Node):
             raise ValueError(f"parameter max_steps must be >= 1, got {p['max_steps']}")
         if p["fov_size"] < 3 or p["fov_size"] % 2 == 0:
             raise ValueError(f"parameter fov_size must be an odd integer >= 3, got {p['fov_size']}")
+        try:
+            p["extra_channels"] = list(ExtraChannels.from_names([n for n in p["extra_channels"] if n]).names)
+        except ValueError as exc:
+            raise ValueError(f"parameter extra_channels: {exc}") from exc
         return p
 
     # --- inputs ----------------------------------------------------------------------------------
@@ -257,8 +263,8 @@ class WorldNode(Node):
         core = self.core
         step = core.begin_step()
         self.step_started = now
-        obs = self.builder.build(core.positions, core.last_actions)
-        for i, msg in enumerate(fleet_msgs.observations(obs, core, self.header())):
+        obs = core.observe(self.builder, self.extra)
+        for i, msg in enumerate(fleet_msgs.observations(obs, core, self.header(), self.extra.names)):
             self.obs_pubs[i].publish(msg)
         # The robots' time starts when the last observation is out, not before a slow publish.
         self.deadline.set(time.monotonic(), self.params["action_timeout_s"])

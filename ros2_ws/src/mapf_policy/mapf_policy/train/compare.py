@@ -63,7 +63,7 @@ def compare(paths, sizes, cases: int, seed: int = 0, map_size: int = 40, density
         net, ncfg, meta = load_model(path)  # raises a clear error for a missing, corrupt or foreign file
         # The solver's path also serves the second design's inputs (channels beyond the paper's six, the still
         # count); the greedy actor below builds the paper's observation only.
-        if rule != PAPER_RULE or ncfg.extra_channels() or ncfg.still_bins:
+        if rule != PAPER_RULE or ncfg.extra_channels().count or ncfg.still_bins:
             out[str(path)] = evaluate_with_rule(net, path, instances, max_steps, rule, sample_seed, progress, meta)
             continue
         out[str(path)] = evaluate_by_size(InferenceNet(net.eval()), instances, ncfg.fov_size, max_steps, progress,
