@@ -35,7 +35,10 @@ def test_policy_node_starts_and_answers_where_torch_cannot_be_imported(tmp_path,
 
     from mapf_policy.policy import Policy
     from mapf_world.fleet_launch import ProcessGroup, node_command
+    from mapf_world import fleet_msgs
+    from mapf_world.fleet_core import FleetCore
     from mapf_world.instances import generate_instance
+    from std_msgs.msg import Header
     from mapf_world.observation import ObservationBuilder
 
     env = blocking_env(tmp_path, domain_id)
@@ -55,12 +58,11 @@ def test_policy_node_starts_and_answers_where_torch_cannot_be_imported(tmp_path,
                          timeout=60.0, what="the policy node's observation subscription")
         assert group.procs["policy"].poll() is None, group.log_text("policy")
         inst = generate_instance(3, size=20, density=0.3, n_agents=4)
-        obs = ObservationBuilder(inst.grid, inst.goals).build(inst.starts, np.zeros(4, dtype=np.int64))
-        msg = AgentObservation()
-        msg.step, msg.robot_id, msg.fov_size, msg.fov_channels, msg.last_action_mode = 0, 1, 9, 6, "requested"
-        msg.fov = obs["fov"][1].astype(np.float32).ravel().tolist()
-        msg.last_action = obs["last_action"][1].astype(np.float32).tolist()
-        msg.position = inst.starts[1].astype(np.int32).tolist()
+        # The observation as the world node builds it for this model (its channels and last-action mode).
+        policy = Policy(str(any_model), seed=1)
+        core = FleetCore(inst.grid, inst.starts, inst.goals, 10, last_action=policy.meta.get("last_action", "requested"))
+        obs = core.observe(ObservationBuilder(inst.grid, inst.goals), policy.cfg.extra_channels())
+        msg = fleet_msgs.observations(obs, core, Header(), policy.cfg.extra_channels().names)[1]
         graph.spin_until(lambda: got or pub.publish(msg), timeout=20.0, what="an action from the policy node")
     finally:
         graph.close()
@@ -69,5 +71,5 @@ def test_policy_node_starts_and_answers_where_torch_cannot_be_imported(tmp_path,
     assert codes["policy"] == 0, log
     assert "ready in" in log and "Traceback" not in log, log
     assert (got[0].step, got[0].robot_id) == (0, 1)
-    expected = Policy(str(any_model), seed=1).act(obs["fov"][1:2], obs["last_action"][1:2], obs["position"][1:2])
+    expected = policy.act_obs({key: v[1:2] for key, v in obs.items()})
     assert got[0].action == int(expected[0])

@@ -28,12 +28,15 @@ from mapf_policy.solver import default_model_path
 FORWARDS = ("fast", "im2col", "winograd", "reference")
 
 
-def random_inputs(batch: int, rng: np.random.Generator) -> tuple:
-    """(fov, last_action, position) of `batch` agents: 0/1 channels at density 0.3, one-hot actions, cells of 40x40."""
-    fov = (rng.random((batch, 6, 9, 9)) < 0.3).astype(np.float32)
+def random_inputs(batch: int, rng: np.random.Generator, cfg: NetworkConfig | None = None) -> tuple:
+    """(fov, last_action, position[, still]) of `batch` agents for a network of `cfg`: 0/1 channels at density 0.3
+    (as many as it reads), one-hot actions, cells of 40x40, and a one-hot still input if it reads one."""
+    cfg = cfg or NetworkConfig()
+    fov = (rng.random((batch, cfg.fov_channels, cfg.fov_size, cfg.fov_size)) < 0.3).astype(np.float32)
     last = np.eye(5, dtype=np.float32)[rng.integers(0, 5, batch)]
     pos = rng.integers(0, 40, (batch, 2)).astype(np.float32)
-    return fov, last, pos
+    still = (np.eye(cfg.still_bins, dtype=np.float32)[rng.integers(0, cfg.still_bins, batch)],) if cfg.still_bins else ()
+    return (fov, last, pos) + still
 
 
 def time_batch(policy: Policy, inputs: tuple, repeats: int) -> np.ndarray:
@@ -79,13 +82,13 @@ def main(argv=None) -> None:
     forwards = {"fast": policy.forward,
                 "im2col": InferenceNet(policy.net, winograd_min_batch=None),
                 "winograd": InferenceNet(policy.net, winograd_min_batch=1),
-                "reference": lambda f, a, p: reference(f.contiguous(memory_format=torch.channels_last), a, p)}
+                "reference": lambda f, a, p, *s: reference(f.contiguous(memory_format=torch.channels_last), a, p, *s)}
     names = list(dict.fromkeys(args.forward))
     print(f"cpu: {platform.processor() or platform.machine()}, torch {torch.__version__}, threads {torch.get_num_threads()}, "
           f"action rule {args.action_rule} {policy.rule.asdict()}")
     for b in args.batches:
         rng = np.random.default_rng(b)
-        inputs = random_inputs(b, rng)
+        inputs = random_inputs(b, rng, policy.cfg)
         ms = {name: [] for name in names}
         for _ in range(args.rounds):
             for name in names:
