@@ -65,6 +65,17 @@ def test_cli_reports_every_model_and_refuses_missing(repo_root, tmp_path, two_ra
     assert missing.returncode == 2 and "nope.pt" in missing.stderr
 
 
+def test_a_second_design_model_is_refused_with_the_tool_that_serves_it(tmp_path):
+    from mapf_policy.config import NetworkConfig
+    from mapf_policy.model_io import save_model
+    from mapf_policy.network import QNetwork
+    from mapf_policy.train.agreement import load_forward
+    cfg = NetworkConfig(dueling=True, goal_dirs=True, still_bins=4, still_count="revisit")
+    path = save_model(tmp_path / "second.pt", QNetwork(cfg), cfg, {})
+    with pytest.raises(ValueError, match="scripts/ladder .* --agreement"):
+        load_forward(path)
+
+
 def test_shared_states_score_every_model_on_the_reference_rows(tmp_path, two_random_models):
     ref, other = two_random_models
     cases = generated_cases(5, COMPARE_STREAM, [2, 3], 1, 10, 0.3)

@@ -186,3 +186,22 @@ def test_median_curve_holds_each_case_at_its_last_count():
     cases = [{"on_goal": [0, 1, 2]}, {"on_goal": [0, 2, 2, 3, 3]}, {"on_goal": [1, 1]}]
     # Padded to 5 steps: [0 1 2 2 2], [0 2 2 3 3], [1 1 1 1 1].
     assert _median_curve(cases, max_steps=4).tolist() == [0, 1, 2, 2, 2]
+
+
+def test_failure_modes_serves_a_second_design_model(repo_root, tmp_path):
+    """A model that reads channels beyond the paper's six and the revisit count (issue 20's second design, shipped
+    since the fortieth session) is played with the observation it reads."""
+    import torch
+
+    from mapf_policy.config import NetworkConfig
+    from mapf_policy.model_io import save_model
+    from mapf_policy.network import QNetwork
+    cfg = NetworkConfig(dueling=True, heading=True, priority=True, goal_dirs=True, still_bins=4, still_count="revisit")
+    torch.manual_seed(0)
+    model = str(save_model(tmp_path / "second.pt", QNetwork(cfg), cfg, {"last_action": "executed"}))
+    run = subprocess.run([str(repo_root / "scripts" / "failure_modes"), model, "--sizes", "3", "--cases", "1",
+                          "--map-size", "10", "--max-steps", "10", "--out", str(tmp_path / "fm"), "--no-progress"],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    data = json.loads((tmp_path / "fm" / "failures.json").read_text())
+    assert data["summaries"][model]["3"]["cases"] == 1

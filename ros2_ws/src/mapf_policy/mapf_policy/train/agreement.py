@@ -126,6 +126,10 @@ class SecondOpinion:
 def load_forward(path) -> tuple:
     """(InferenceNet, NetworkConfig) of a model file; a clear error for a missing, corrupt or foreign file."""
     net, ncfg, _ = load_model(path)
+    if ncfg.extra_channels().count or ncfg.still_bins:
+        raise ValueError(f"{path} reads inputs beyond the paper's (issue 20's second design: "
+                         f"{list(ncfg.extra_channels().names)}, still input {ncfg.still_bins}); this tool plays the "
+                         f"first design's actors. For such a model: scripts/ladder {path} --rung 3 --agreement")
     return InferenceNet(net.eval()), ncfg
 
 

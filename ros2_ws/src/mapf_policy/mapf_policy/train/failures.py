@@ -195,6 +195,8 @@ class _Recorder:
         self.solver, self.actions = solver, []
         # run_case builds the env with the solver's last-action mode (the model's; planners have none)
         self.last_action = getattr(solver, "last_action", "requested")
+        # ... and with the channels and revisit count the model reads (a second-design model's; else none)
+        self.env_channels = getattr(solver, "env_channels", {})
 
     def reset(self, env) -> None:
         self.actions = []
