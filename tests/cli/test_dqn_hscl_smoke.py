@@ -320,21 +320,15 @@ def test_a_prioritized_expert_run_logs_the_share_of_states_it_labelled(repo_root
     assert bad.returncode == 2 and "index order" in bad.stderr
 
 
-def test_rollouts_that_deviate_only_yielding_agents_need_the_priority_channel(repo_root, tmp_path):
-    bad = _run(repo_root, tmp_path, "--run-name", "y0", "--greedy-fraction", "1", "--stuck-steps", "1",
-               "--stuck-cycles", "--stuck-rollout", "4", "--rollout-yielding")
-    assert bad.returncode == 2 and "rollout_yielding needs" in bad.stderr
-    run = _run(repo_root, tmp_path, "--run-name", "y", "--priority", "--greedy-fraction", "1", "--stuck-steps", "1",
-               "--stuck-cycles", "--stuck-rollout", "4", "--mine-episodes", "1", "--rollout-yielding")
+def test_retired_options_are_refused_and_a_run_trained_with_one_is_not_resumed(repo_root, tmp_path):
+    """--rollout-yielding, --rollout-plan-best and --contact-weight lost their ablations and were retired (fortieth
+    session); a run directory saved with one of them on cannot be resumed as if it had been off."""
+    for flag in ("--rollout-yielding", "--rollout-plan-best", "--contact-weight"):
+        bad = _run(repo_root, tmp_path, "--run-name", "gone", flag)
+        assert bad.returncode == 2 and f"unrecognized arguments: {flag}" in bad.stderr, bad.stderr[-500:]
+    run = _run(repo_root, tmp_path, "--run-name", "old")
     assert run.returncode == 0, run.stderr[-3000:]
-    assert json.loads((tmp_path / "runs" / "y" / "config.json").read_text())["rollout_yielding"] is True
-
-
-def test_rollouts_restricted_to_the_plans_best_moves_run_and_are_recorded(repo_root, tmp_path):
-    bad = _run(repo_root, tmp_path, "--run-name", "pb0", "--rollout-plan-best")
-    assert bad.returncode == 2 and "rollout_plan_best needs" in bad.stderr
-    run = _run(repo_root, tmp_path, "--run-name", "pb", "--greedy-fraction", "1", "--stuck-steps", "1",
-               "--stuck-cycles", "--stuck-rollout", "4", "--mine-episodes", "1", "--rollout-plan-best")
-    assert run.returncode == 0, run.stderr[-3000:]
-    assert json.loads((tmp_path / "runs" / "pb" / "config.json").read_text())["rollout_plan_best"] is True
-    assert all(int(r["mined_labels"]) >= 0 for r in _rows(tmp_path / "runs" / "pb" / "train.csv"))
+    saved = tmp_path / "runs" / "old" / "config.json"
+    saved.write_text(json.dumps(json.loads(saved.read_text()) | {"rollout_plan_best": True}))
+    again = _run(repo_root, tmp_path, "--run-name", "old")
+    assert again.returncode == 2 and "retired options ['rollout_plan_best']" in again.stderr, again.stderr[-500:]

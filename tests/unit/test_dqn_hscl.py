@@ -703,57 +703,6 @@ def test_the_lockstep_screen_finds_exactly_the_greedy_teams_that_get_stuck():
     assert greedy_gets_stuck(_heuristic_greedy, []).shape == (0,)
 
 
-def test_yielding_agents_are_those_that_see_an_earlier_agent():
-    from mapf_policy.train.rollout import yielding_agents
-
-    pos = np.array([[0, 0], [0, 4], [0, 9], [9, 9]])
-    # agent 1 sees agent 0 (distance 4); agent 2 sees agent 1 (5 away: no) -> no; agent 3 sees nobody earlier nearby
-    assert yielding_agents(pos, 4).tolist() == [False, True, False, False]
-    assert yielding_agents(pos, 5).tolist() == [False, True, True, False]
-
-
-def test_best_deviation_with_yielding_moves_only_the_agent_that_sees_an_earlier_one():
-    from mapf_policy.train.rollout import best_deviation
-    from mapf_world.grid import RIGHT, STAY
-    # As above with the indices swapped: agent 0 is parked on its goal, agent 1 pushes into it.
-    env = MapfEnv(np.zeros((3, 5), np.uint8), np.array([[1, 2], [1, 1]]), np.array([[1, 2], [1, 4]]),
-                  last_action="executed")
-    env.reset()
-    free = best_deviation(_heuristic_greedy, env, np.array([STAY, RIGHT]), 20, 2)
-    yielded = best_deviation(_heuristic_greedy, env, np.array([STAY, RIGHT]), 20, 2, yielding=True)
-    assert free is not None and free[0] == 0  # unrestricted, the parked agent steps aside (solved soonest)
-    assert yielded is not None and yielded[0] == 1  # the later agent goes round instead
-
-
-def test_plan_best_moves_are_the_minimum_of_first_move_costs():
-    from mapf_policy.train.rollout import plan_best_moves
-    from mapf_world.grid import DOWN, RIGHT, STAY, UP
-    from mapf_world.heuristics import distance_maps
-    # Agent 0 parked on its goal at (1, 2); agent 1 at (1, 1) bound for (1, 4) goes round it, over or under (ties).
-    grid = np.zeros((3, 5), np.uint8)
-    pos, goals = np.array([[1, 2], [1, 1]]), np.array([[1, 2], [1, 4]])
-    best = plan_best_moves(grid, pos, goals, distance_maps(grid, goals))
-    assert np.flatnonzero(best[0]).tolist() == [STAY]
-    assert np.flatnonzero(best[1]).tolist() == [UP, DOWN]  # RIGHT, the push, is illegal for the plan
-    # a walled-in agent has no plan: every action stays allowed for it (and for the later agents)
-    walled = np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]], np.uint8)
-    p2, g2 = np.array([[1, 1], [0, 0]]), np.array([[0, 2], [2, 2]])
-    assert plan_best_moves(walled, p2, g2, distance_maps(walled, g2)).all()
-    assert best.shape == (2, 5) and not best[1, RIGHT]
-
-
-def test_best_deviation_with_plan_best_tries_only_the_plans_best_moves():
-    from mapf_policy.train.rollout import best_deviation
-    from mapf_world.grid import DOWN, RIGHT, STAY, UP
-    env = MapfEnv(np.zeros((3, 5), np.uint8), np.array([[1, 2], [1, 1]]), np.array([[1, 2], [1, 4]]),
-                  last_action="executed")
-    env.reset()
-    free = best_deviation(_heuristic_greedy, env, np.array([STAY, RIGHT]), 20, 2)
-    planned = best_deviation(_heuristic_greedy, env, np.array([STAY, RIGHT]), 20, 2, plan_best=True)
-    assert free is not None and free[0] == 0  # unrestricted: the parked earlier agent steps aside, a move its plan ranks worse
-    assert planned is not None and planned[0] == 1 and planned[1] in (UP, DOWN)  # the plan's way: the later one goes round
-
-
 def test_contact_rows_are_off_goal_agents_touching_an_earlier_agent():
     grid = np.zeros((12, 12), dtype=np.int8)
     # 0 and 1 side by side (1 touches the earlier 0; 0 touches only a later agent); 2 diagonal to 1 (touches no one);
@@ -765,31 +714,6 @@ def test_contact_rows_are_off_goal_agents_touching_an_earlier_agent():
     cfg = NetworkConfig(heading=True, priority=True)
     assert contact_rows(fov, cfg.in_channels + int(cfg.heading)).tolist() == [False, True, False, False, False]
     assert Args(heading=True, priority=True).priority_channel() == cfg.in_channels + int(cfg.heading)
-
-
-def test_contact_weight_weighs_the_rows_touching_an_earlier_agent_in_the_ce_term():
-    args = Args(imitation="ce", heading=True, priority=True, contact_weight=5.0)
-    pc = args.priority_channel()
-    q = torch.tensor([[0.3, 0.1, 0.0, -0.2, 0.5], [1.0, 1.2, 0.9, 0.8, 1.1], [0.0, 0.4, 0.0, 0.0, 0.0]])
-    fov = torch.zeros(3, pc + 1, 9, 9)
-    fov[:, 2, 4, 4] = 1.0  # all three off their goal
-    fov[1, pc, 3, 4] = 1.0  # row 1: an earlier agent in the cell above, a contact row
-    fov[0, pc, 3, 3] = 1.0  # row 0: an earlier agent diagonal, not a contact
-    fov[2, pc, 4, 5] = 1.0  # row 2 touches one but has no label
-    batch = {"action": torch.tensor([0, 0, 0]), "ret": torch.zeros(3), "boot_gamma": torch.zeros(3),
-             "expert": torch.tensor([4, 2, -1]), "blocker": torch.tensor([False, False, False]), "fov": fov}
-    per_row = [float(-torch.log_softmax((q[i] - q[i].mean()) / 0.1, dim=0)[k]) for i, k in ((0, 4), (1, 2))]
-    _, weighted, _ = losses(q, torch.zeros(3, 5), batch, args)
-    assert float(weighted) == pytest.approx((per_row[0] + 5 * per_row[1]) / 6, rel=1e-5)
-    _, plain, _ = losses(q, torch.zeros(3, 5), batch, Args(imitation="ce", heading=True, priority=True))
-    assert float(plain) == pytest.approx((per_row[0] + per_row[1]) / 2, rel=1e-5)
-    args.validate()
-    with pytest.raises(ValueError, match="contact_weight"):
-        Args(imitation="ce", heading=True, contact_weight=5.0).validate()  # no priority channel to read
-    with pytest.raises(ValueError, match="contact_weight"):
-        Args(heading=True, priority=True, contact_weight=5.0).validate()  # the HSCL term
-    with pytest.raises(ValueError, match="contact_weight"):
-        Args(imitation="ce", heading=True, priority=True, contact_weight=0.0).validate()
 
 
 def test_meeting_rows_are_off_goal_agents_with_another_in_view():

@@ -61,6 +61,11 @@ from mapf_world.instances import generate_instance
 from mapf_world.planners.odrmstar import OBJECTIVES as EXPERT_OBJECTIVES
 
 
+# Options retired after their ablations lost (issue 20; EXPERIMENTS.md, fortieth session), with the value that means
+# "off": a run saved with another value cannot be resumed by this code.
+RETIRED = {"rollout_yielding": False, "rollout_plan_best": False, "contact_weight": 1.0}
+
+
 @dataclass(frozen=True)
 class Args:
     """One run of the second design; saved as config.json in the run directory."""
@@ -259,17 +264,6 @@ class Args:
     stage are played at this AGENTSxSIZE instead (e.g. 8x20 while training 4x20): a crowd gets stuck more often, so
     each mining episode yields more rollout labels of the conflicts a smaller team meets more rarely. "": the
     episode's own stage."""
-    rollout_yielding: bool = False
-    """Beyond the paper, with stuck_rollout and priority: the rollout search deviates only agents that see an earlier
-    agent (a lower index, marked in the priority channel) within the field of view, the ones that the index order says
-    make way; all agents where no agent sees an earlier one. So the mined labels follow the visible give-way rule
-    that the prioritized expert's labels follow too."""
-    rollout_plan_best: bool = False
-    """Beyond the paper, with stuck_rollout: the rollout search tries only the moves that the prioritized plan from
-    that state ranks best for the agent (plan_best_moves; every move for an agent the plan has no path for). Without
-    it, about 0.7 of r107's mined labels were moves the plan ranks worse, mostly detours round an agent that gives way
-    by the index order, and the trained networks make those detours where the plan's move works (issue 20;
-    EXPERIMENTS.md, thirty-seventh session). With it, a loop that no such single step breaks yields no label."""
     stuck_cycles: bool = False
     """Beyond the paper: a greedy actor team is stuck (stuck_steps' exploration, stuck_rescue, stuck_rollout) where its
     joint state (positions, executed and requested last actions: what every observation is built from) repeats one
@@ -287,12 +281,6 @@ class Args:
     blocker_weight where both apply). Such rows are about half the labelled rows at 4 agents on 20x20 (train.csv
     `meet_share`), and the held-out agreement with the expert there stays near 0.945 whatever the training data
     (issue 20, thirty-first session). 1: every labelled row alike."""
-    contact_weight: float = 1.0
-    """Beyond the paper: with `imitation` 'ce' and `priority`, a labelled row whose agent is off its goal and touches
-    an earlier agent (contact_rows) weighs this many times an ordinary labelled row in the imitation term (times
-    blocker_weight and meet_weight where they apply). Such rows are about 0.09 of the labelled rows at 4 agents on
-    20x20 (train.csv `contact_share`) and agree least with the expert, in training (0.92) and held out at 16 agents
-    (0.75-0.80; issue 20, thirty-fourth session). 1: every labelled row alike."""
     expert: str = "odrmstar"
     """'odrmstar' (the paper's), 'prioritized' (beyond the paper: prioritized planning in index order, ODrM* where it
     finds no plan; with `priority` its give-way rule is in the observation: train/expert.py), or 'shortest_path' (a
@@ -349,9 +337,6 @@ class Args:
         need(not self.stuck_value or (self.stuck_steps >= 2 and self.greedy_fraction > 0),
              "stuck_value needs greedy_fraction > 0 and stuck_steps >= 2 (a fixed point of the greedy team)")
         need(self.stuck_rollout >= 0, f"stuck_rollout must be >= 0, got {self.stuck_rollout}")
-        need(not self.rollout_yielding or (self.stuck_rollout > 0 and self.priority),
-             "rollout_yielding needs stuck_rollout > 0 and priority (the order it yields by is the priority channel's)")
-        need(not self.rollout_plan_best or self.stuck_rollout > 0, "rollout_plan_best needs stuck_rollout > 0")
         need(self.mine_episodes >= 0, f"mine_episodes must be >= 0, got {self.mine_episodes}")
         countable = not self.still_bins or self.still_count == "revisit"  # joint_state holds only that count
         need(not self.mine_episodes or (self.stuck_rollout > 0 and countable and not self.recurrent),
@@ -395,10 +380,6 @@ class Args:
         need(self.meet_weight > 0, f"meet_weight must be > 0, got {self.meet_weight}")
         need(self.meet_weight == 1.0 or (self.imitation == "ce" and not self.recurrent),
              "meet_weight != 1 needs imitation 'ce' and a feed-forward network")
-        need(self.contact_weight > 0, f"contact_weight must be > 0, got {self.contact_weight}")
-        need(self.contact_weight == 1.0 or (self.imitation == "ce" and not self.recurrent and self.priority),
-             "contact_weight != 1 needs imitation 'ce', priority (which marks the earlier agents) and a feed-forward "
-             "network")
         need(0.0 < self.tau_h < 0.2, f"tau_h must lie in (0, 0.2), got {self.tau_h}")
         need(self.lr_end >= 0, f"lr_end must be >= 0, got {self.lr_end}")
         need(0 <= self.ema_decay < 1, f"ema_decay must be in [0, 1), got {self.ema_decay}")
@@ -526,7 +507,7 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
                  expert_drives: bool = False, greedy_until_stuck: int = 0,
                  blocking: tuple[float, int] = (0.0, 0), goal_exploration: bool = True,
                  stuck_ends: bool = False, stuck_rescue: bool = False, stuck_rollout: int = 0,
-                 stuck_cycles: bool = False, yielding: bool = False, plan_best: bool = False) -> tuple[dict, dict]:
+                 stuck_cycles: bool = False) -> tuple[dict, dict]:
     """One episode, every agent acting on its own observation (all in one batch).
 
     Actions: argmax Q (the paper's greedy rule; ties to the lowest index), or the expert's when
@@ -544,8 +525,7 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
     best_deviation's move is played there and labels its agent's row (stats["deviations"]), random steps only where
     no deviation helps (at most MAX_DEVIATION_SEARCHES searches an episode). With `stuck_cycles`, the team is stuck
     where its joint state (MapfEnv.joint_state) repeats one it was in before in the episode, a cycle of any period of
-    the deterministic greedy team, instead of after k still steps. `yielding` and `plan_best` restrict the search
-    (best_deviation)."""
+    the deterministic greedy team, instead of after k still steps."""
     cfg = getattr(forward, "cfg", NetworkConfig())
     recurrent = isinstance(forward, RecurrentActor)
     obs, _ = env.reset()
@@ -580,8 +560,8 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
             actions = q.argmax(axis=1)
             if stuck_rollout and stuck and eps_now == 0.0:
                 searches += 1
-                dev = (best_deviation(forward, env, actions, stuck_rollout, greedy_until_stuck, stuck_cycles, yielding,
-                                      plan_best) if searches <= MAX_DEVIATION_SEARCHES else None)
+                dev = (best_deviation(forward, env, actions, stuck_rollout, greedy_until_stuck, stuck_cycles)
+                       if searches <= MAX_DEVIATION_SEARCHES else None)
                 if dev is None:
                     eps_now = epsilon  # no single step of one agent gets the team moving: explore, as stuck_steps does
                     if epsilon == 0.0:  # nothing would ever change: the episode is over
@@ -616,13 +596,11 @@ def play_episode(forward, env: MapfEnv, epsilon: float | np.ndarray, rng, oracle
                    "blocked": blocked, "deviations": deviations}
 
 
-def mine(forward, envs: list[MapfEnv], horizon: int, rng, yielding: bool = False,
-         plan_best: bool = False) -> list[tuple[dict, dict]]:
+def mine(forward, envs: list[MapfEnv], horizon: int, rng) -> list[tuple[dict, dict]]:
     """Mining (Args.mine_episodes): (steps, stats) of play_episode, greedy with the rollout search of `horizon` steps
     wherever the team loops, for the envs whose teams get stuck at all; the others, screened in lockstep by
     greedy_gets_stuck, can yield no label and are not played again."""
-    return [play_episode(forward, env, 0.0, rng, greedy_until_stuck=1, stuck_rollout=horizon, stuck_cycles=True,
-                         yielding=yielding, plan_best=plan_best)
+    return [play_episode(forward, env, 0.0, rng, greedy_until_stuck=1, stuck_rollout=horizon, stuck_cycles=True)
             for env, hit in zip(envs, greedy_gets_stuck(forward, envs)) if hit]
 
 
@@ -927,8 +905,6 @@ def losses(q: torch.Tensor, next_q_target: torch.Tensor, batch: dict, args: Args
                 w = torch.where(batch["blocker"][labelled], args.blocker_weight, w)
             if args.meet_weight != 1.0:
                 w = torch.where(meeting_rows(batch["fov"][labelled]), w * args.meet_weight, w)
-            if args.contact_weight != 1.0:
-                w = torch.where(contact_rows(batch["fov"][labelled], args.priority_channel()), w * args.contact_weight, w)
             l_hscl = (w * ce).sum() / w.sum()
         else:
             l_hscl = hscl_loss(scores[labelled], batch["expert"][labelled], args.tau_h, args.temperature)
@@ -1058,8 +1034,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                                         goal_exploration=args.goal_exploration,
                                         stuck_ends=args.stuck_value and greedy, stuck_rescue=args.stuck_rescue and greedy,
                                         stuck_rollout=args.stuck_rollout if greedy else 0,
-                                        stuck_cycles=args.stuck_cycles, yielding=args.rollout_yielding,
-                                        plan_best=args.rollout_plan_best)
+                                        stuck_cycles=args.stuck_cycles)
             rows = episode_rows(steps, stats["success"], args.gamma, args.n_step, args.feasible_labels,
                                 STILL_KEYS[args.still_count], goals=None if args.parked_labels else env.goals,
                                 episode=state["episodes"], fixed_point=stats["fixed_point"], map_shape=env.grid.shape)
@@ -1077,8 +1052,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
             m_envs = mining_envs(args.seed, state.get("mined", 0), args.mine_episodes, m_agents, m_size, args.density,
                                  args.max_episode_steps, args.last_action, ncfg)
             state["mined"] = state.get("mined", 0) + args.mine_episodes
-            for m_steps, m_stats in mine(act_q, m_envs, args.stuck_rollout, rng, args.rollout_yielding,
-                                         args.rollout_plan_best):
+            for m_steps, m_stats in mine(act_q, m_envs, args.stuck_rollout, rng):
                 if m_stats["deviations"]:
                     m_rows = episode_rows(m_steps, m_stats["success"], args.gamma, args.n_step, False,
                                           STILL_KEYS[args.still_count], episode=state["episodes"],
@@ -1446,6 +1420,11 @@ def main(argv=None) -> int:
         if differ:
             print(f"error: run {run_dir} exists with other values of {differ}; resume without them or pick another "
                   f"--run-name", file=sys.stderr)
+            return 2
+        retired = sorted(k for k, off in RETIRED.items() if old.get(k, off) != off)
+        if retired:
+            print(f"error: run {run_dir} was trained with the retired options {retired} (their ablations lost; "
+                  f"models/EXPERIMENTS.md); this code cannot resume it", file=sys.stderr)
             return 2
     if args.init_model and not (run_dir / "last.pt").is_file():
         _, init_cfg, _ = load_model(args.init_model)

@@ -15,7 +15,6 @@ from mapf_policy.network import network_inputs
 from mapf_policy.train.demos import MINE_STREAM, instance_rng
 from mapf_world.env import MapfEnv
 from mapf_world.instances import generate_instance
-from mapf_world.planners.prioritized import first_move_costs
 
 
 def greedy_gets_stuck(forward, envs: list[MapfEnv]) -> np.ndarray:
@@ -60,43 +59,22 @@ def mining_envs(seed: int, first: int, count: int, agents: int, size: int, densi
     return envs
 
 
-def yielding_agents(positions: np.ndarray, radius: int) -> np.ndarray:
-    """(N,) bool: agent i sees an earlier agent j < i within Chebyshev distance `radius` (inside its field of view)."""
-    d = np.abs(positions[:, None, :] - positions[None, :, :]).max(axis=2)
-    earlier = np.tril(np.ones((len(positions),) * 2, dtype=bool), k=-1)  # [i, j]: j < i
-    return ((d <= radius) & earlier).any(axis=1)
-
-
-def plan_best_moves(grid: np.ndarray, positions: np.ndarray, goals: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """(N, 5) bool: the first actions the prioritized plan from this state ranks best for each agent (the minimum of
-    first_move_costs over its legal actions; ties all count); every action for an agent the plan has no path for."""
-    costs = first_move_costs(grid, positions, goals, dist)
-    legal = costs >= 0
-    best = np.where(legal, costs, np.iinfo(costs.dtype).max).min(axis=1, keepdims=True)
-    return np.where(legal.any(axis=1, keepdims=True), legal & (costs == best), True)
-
-
 def best_deviation(forward, env: MapfEnv, actions: np.ndarray, horizon: int, stuck_steps: int,
-                   cycles: bool = False, yielding: bool = False, plan_best: bool = False) -> tuple[int, int] | None:
+                   cycles: bool = False) -> tuple[int, int] | None:
     """(agent, action) that gets a greedy team out of a fixed point, or None.
 
     For each agent i and each action a other than its greedy one (actions), a copy of the episode plays the joint
     actions with a in place of agent i's, then greedy play for up to `horizon` steps, stopping early where the copy
     stands still `stuck_steps` steps again (with `cycles`: where its joint state repeats, so it loops for ever). A deviation refused at once is skipped. Best: solved in the fewest steps;
-    else the lowest sum over agents of the distance to the goal at the copy's end, if below the sum now. With
-    `yielding`, only the agents yielding_agents finds deviate (all of them where it finds none); with `plan_best`,
-    only to the moves plan_best_moves allows."""
+    else the lowest sum over agents of the distance to the goal at the copy's end, if below the sum now."""
     dist = env.dist
     idx = np.arange(env.n_agents)
     sum_dist = lambda pos: int(dist[idx, pos[:, 0], pos[:, 1]].sum())  # noqa: E731
     cfg = getattr(forward, "cfg", NetworkConfig())
     best, best_key = None, (1, sum_dist(env.positions))  # (0, steps) solved; (1, sum of distances) not
-    movers = yielding_agents(env.positions, cfg.fov_size // 2) if yielding else np.ones(env.n_agents, dtype=bool)
-    allowed = (plan_best_moves(env.grid, env.positions, env.goals, dist) if plan_best
-               else np.ones((env.n_agents, 5), dtype=bool))
-    for i in np.flatnonzero(movers) if movers.any() else range(env.n_agents):
+    for i in range(env.n_agents):
         for a in range(5):
-            if a == actions[i] or not allowed[i, a]:
+            if a == actions[i]:
                 continue
             sim = copy.deepcopy(env)
             joint = actions.copy()
