@@ -18,9 +18,24 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.filterwarnings("ign
 MAX_STEPS = 12
 
 
+def run_fleet(out, domain_id, model, rule_name: str, case, max_steps: int, n_robots: int = 3, policy=None):
+    """The fleet on case 0 of `case` under the paper's rule or the default one (the policy node's defaults, seed =
+    robot id); the world's observation parameters come from the model's export (Fleet). (fleet, world code, summary)."""
+    from mapf_policy.action_selection import PAPER_RULE
+    from mapf_policy.policy_node import RULE_PARAMETERS
+    rule = {k: getattr(PAPER_RULE, k) for k in RULE_PARAMETERS} if rule_name == "paper" else {}
+    fleet = Fleet(out, domain_id, model, n_robots=n_robots, policy=rule | (policy or {}),
+                  world=dict(instance_source="npz", npz_file=str(case), npz_index=0, max_steps=max_steps))
+    fleet.start()
+    try:
+        code = fleet.wait_world(timeout=120)
+    finally:
+        fleet.stop()
+    return fleet, code, json.loads(fleet.summary.read_text())
+
+
 @pytest.mark.parametrize("rule_name", ["paper", "default"])
 def test_fleet_trajectory_equals_the_evaluation_harness_s(tmp_path, domain_id, any_model, rule_name):
-    from mapf_policy.action_selection import PAPER_RULE
     from mapf_world.evaluate import main as evaluate
     from mapf_world.fleet_core import load_fleet_instance
     from mapf_world.fleet_replay import load_run
@@ -37,16 +52,7 @@ def test_fleet_trajectory_equals_the_evaluation_harness_s(tmp_path, domain_id, a
         expected = traj["positions"][0][:steps + 1]
 
     # The default rule is the policy node's default too (and its seed -1: the robot id).
-    rule = ({k: getattr(PAPER_RULE, k) for k in ("action_temperature", "backtrack_penalty", "mask_obstacle_moves")}
-            if rule_name == "paper" else {})
-    fleet = Fleet(tmp_path / "fleet", domain_id, any_model, policy=rule,
-                  world=dict(instance_source="npz", npz_file=str(case), npz_index=0, max_steps=MAX_STEPS))
-    fleet.start()
-    try:
-        code = fleet.wait_world(timeout=120)
-    finally:
-        fleet.stop()
-    summary = json.loads(fleet.summary.read_text())
+    fleet, code, summary = run_fleet(tmp_path / "fleet", domain_id, any_model, rule_name, case, MAX_STEPS)
     assert code == 0 and summary["timeouts"] == 0, fleet.group.log_text("world")[-2000:]
     logged = load_run(fleet.mcap).positions()
     assert summary["steps"] == steps
@@ -68,7 +74,6 @@ def test_a_second_design_fleet_follows_the_harness(tmp_path, domain_id, rule_nam
     sets them, and the robots' trajectory equals the harness's."""
     import shutil
 
-    from mapf_policy.action_selection import PAPER_RULE
     from mapf_policy.export import export_model
     from mapf_world.evaluate import main as evaluate
     from mapf_world.fleet_demo import policy_model_params
@@ -89,17 +94,9 @@ def test_a_second_design_fleet_follows_the_harness(tmp_path, domain_id, rule_nam
     with np.load(traj_file) as traj:
         steps = int(traj["steps"][0])
         expected = traj["positions"][0][:steps + 1]
-    rule = ({k: getattr(PAPER_RULE, k) for k in ("action_temperature", "backtrack_penalty", "mask_obstacle_moves")}
-            if rule_name == "paper" else {})
-    fleet = Fleet(tmp_path / "fleet", domain_id, model, n_robots=4, policy=rule | {"source_sha256":
-                                                                                     policy_params["source_sha256"]},
-                  world=dict(instance_source="npz", npz_file=str(case), npz_index=0, max_steps=30) | observation_params)
-    fleet.start()
-    try:
-        code = fleet.wait_world(timeout=120)
-    finally:
-        fleet.stop()
-    summary = json.loads(fleet.summary.read_text())
+    fleet, code, summary = run_fleet(tmp_path / "fleet", domain_id, model, rule_name, case, 30, n_robots=4,
+                                     policy={"source_sha256": policy_params["source_sha256"]})
+    assert {k: fleet.world_params[k] for k in observation_params} == observation_params  # as scripts/demo sets them
     assert code == 0 and summary["timeouts"] == 0 and summary["rejected"] == 0, fleet.group.log_text("world")[-2000:]
     log = load_run(fleet.mcap)
     np.testing.assert_array_equal(log.positions(), expected)

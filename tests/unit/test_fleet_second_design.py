@@ -89,8 +89,8 @@ def test_extra_channel_names_round_trip_and_bad_sets_are_named():
 def robot_play(model_pt: Path, export: Path, inst, steps: int):
     """Greedy play of one instance twice: the harness (MapfEnv + torch Policy on the .pt) and the fleet (FleetCore
     + AgentObservation messages + one RuntimePolicy per robot on the export). Returns both action sequences."""
-    cfg = RuntimePolicy(export).cfg
-    mode = RuntimePolicy(export).last_action_mode
+    probe = RuntimePolicy(export)
+    cfg, mode = probe.cfg, probe.last_action_mode
     env = MapfEnv(inst.grid, inst.starts, inst.goals, max_steps=steps, last_action=mode, **cfg.env_channels())
     policy = Policy(model_pt, rule=PAPER_RULE)
     core = FleetCore(inst.grid, inst.starts, inst.goals, steps, last_action=mode)
