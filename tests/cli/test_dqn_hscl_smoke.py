@@ -80,6 +80,14 @@ def test_dqn_hscl_logs_what_it_learns_and_resumes(repo_root, tmp_path):
     bad = _run(repo_root, tmp_path, "--run-name", "u", "--stages", "4by20")
     assert bad.returncode == 2 and "AGENTSxSIZE" in bad.stderr
 
+    # A published run whose last.pt was kept out of git cannot resume: refused by name, its logs left as they were.
+    shutil.rmtree(tmp_path / "runs")
+    (pub / "last.pt").unlink()
+    logs = (pub / "train.csv").read_bytes()
+    orphan = _run(repo_root, tmp_path, "--run-name", "t", "--total-steps", "24", "--publish-dir", str(pub))
+    assert orphan.returncode == 2 and "step 20 but no last.pt" in orphan.stderr, orphan.stderr[-2000:]
+    assert (pub / "train.csv").read_bytes() == logs
+
 
 @pytest.mark.slow
 def test_ladder_reports_a_rung_and_fails_an_untrained_model(repo_root, tmp_path):

@@ -1432,6 +1432,15 @@ def main(argv=None) -> int:
             print(f"error: --init-model {args.init_model} holds the network {init_cfg}, this run builds "
                   f"{args.network_config()}", file=sys.stderr)
             return 2
+    pub = Path(args.publish_dir) if args.publish_dir else None
+    if (pub is not None and not (run_dir / "checkpoint.pt").is_file() and (pub / "state.json").is_file()
+            and not (pub / "last.pt").is_file()):
+        # A published run without its online weights (last.pt kept out of git, say) cannot resume, and starting
+        # afresh would overwrite its committed logs without a word.
+        step = json.loads((pub / "state.json").read_text()).get("step", "?")
+        print(f"error: {pub} holds a run at step {step} but no last.pt, so it cannot resume: commit last.pt with "
+              f"the run, or move {pub} away to start it afresh", file=sys.stderr)
+        return 2
     print(f"run {run_dir}\n" + json.dumps(_plain(args), indent=1))
     state = train(args, run_dir, progress=not ns.no_progress)
     print(f"stopped at step {state['step']}, stage {args.stages[state['stage']]}; model {run_dir / 'last.pt'}")
