@@ -285,12 +285,19 @@ def test_mined_greedy_episodes_add_only_rollout_labels(repo_root, tmp_path):
 
 def test_averaged_weights_are_validated_saved_published_and_resumed(repo_root, tmp_path):
     pub = tmp_path / "published"
-    run = _run(repo_root, tmp_path, "--run-name", "ema", "--ema-decay", "0.5", "--publish-dir", str(pub))
+    run = _run(repo_root, tmp_path, "--run-name", "ema", "--ema-decay", "0.5", "--publish-dir", str(pub),
+               "--keep-ema-at", "5", "12")
     assert run.returncode == 0, run.stderr[-3000:]
     d = tmp_path / "runs" / "ema"
     last, _, _ = load_model(d / "last.pt")
     ema, _, meta = load_model(d / "ema.pt")
     assert meta["ema_decay"] == 0.5 and meta["step"] == 12 and (pub / "ema.pt").is_file()
+    # --keep-ema-at: copies of the average at those steps, in the run and published; the last one is ema.pt itself.
+    at5, _, meta5 = load_model(pub / "ema_at5.pt")
+    at12, _, _ = load_model(d / "ema_at12.pt")
+    assert meta5["step"] == 5 and (d / "ema_at5.pt").is_file() and not (d / "ema_at6.pt").exists()
+    assert all(torch.equal(a, b) for a, b in zip(ema.parameters(), at12.parameters()))
+    assert not all(torch.equal(a, b) for a, b in zip(ema.parameters(), at5.parameters()))
     # After 12 steps at decay 0.5 the average is near, but not at, the online weights.
     diffs = [float((a - b).detach().abs().max()) for a, b in zip(last.parameters(), ema.parameters())]
     assert max(diffs) > 0
@@ -307,6 +314,11 @@ def test_averaged_weights_are_validated_saved_published_and_resumed(repo_root, t
     assert all(torch.equal(a, b) for a, b in zip(ema.parameters(), again.parameters()))
     bad = _run(repo_root, tmp_path, "--run-name", "ema2", "--ema-decay", "1.0")
     assert bad.returncode == 2 and "ema_decay" in bad.stderr
+    for bad_args, words in ((["--ema-decay", "0.5", "--keep-ema-at", "13"], "1..total_steps"),
+                            (["--ema-decay", "0.5", "--keep-ema-at", "five"], "whole numbers"),
+                            (["--keep-ema-at", "5"], "needs ema_decay")):
+        bad = _run(repo_root, tmp_path, "--run-name", "ema3", *bad_args)
+        assert bad.returncode == 2 and words in bad.stderr, bad.stderr[-500:]
 
 
 def test_a_prioritized_expert_run_logs_the_share_of_states_it_labelled(repo_root, tmp_path):

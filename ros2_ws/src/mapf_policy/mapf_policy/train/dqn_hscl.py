@@ -318,6 +318,9 @@ class Args:
     """Learner steps between train.csv rows (and gradient-share measurements)."""
     checkpoint_minutes: float = 5.0
     """Minutes between checkpoints."""
+    keep_ema_at: tuple = ()
+    """Learner steps at which to keep a copy of the averaged weights, ema_at<STEP>.pt (published too): a learning
+    curve along one long run, laddered afterwards. Needs ema_decay > 0."""
     publish_dir: str = ""
     """Also copy last.pt, best.pt, state.json, config, logs and plot here at each checkpoint (a committed folder, so a
     fresh machine resumes from the weights); empty: don't."""
@@ -383,6 +386,9 @@ class Args:
         need(0.0 < self.tau_h < 0.2, f"tau_h must lie in (0, 0.2), got {self.tau_h}")
         need(self.lr_end >= 0, f"lr_end must be >= 0, got {self.lr_end}")
         need(0 <= self.ema_decay < 1, f"ema_decay must be in [0, 1), got {self.ema_decay}")
+        need(not self.keep_ema_at or self.ema_decay > 0, "keep_ema_at needs ema_decay > 0 (it keeps averaged weights)")
+        need(all(0 < k <= self.total_steps for k in self.keep_ema_at),
+             f"keep_ema_at steps must lie in 1..total_steps ({self.total_steps}), got {list(self.keep_ema_at)}")
         need(self.resume_refill >= 0, f"resume_refill must be >= 0, got {self.resume_refill}")
         need(0 <= self.advantage_learning < 1, f"advantage_learning must lie in [0, 1), got {self.advantage_learning}")
         need(not (self.recurrent and self.advantage_learning > 0), "advantage_learning is not implemented for recurrent")
@@ -1148,6 +1154,8 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                 bar.update(1)
                 if state["step"] % args.target_update_every == 0:
                     target.load_state_dict(net.state_dict())
+                if state["step"] in args.keep_ema_at:
+                    _keep_ema(args, run_dir, ema, state["step"])
                 if logging:
                     row = _log_row(args, state, window, session_t0, eps_at(state["step"]))
                     train_log.write(row)
@@ -1256,6 +1264,17 @@ def _checkpoint(args: Args, run_dir: Path, net, target, opt, state: dict, sessio
                 data = (run_dir / name).read_bytes()
                 (pub / (name + ".tmp")).write_bytes(data)
                 os.replace(pub / (name + ".tmp"), pub / name)
+
+
+def _keep_ema(args: Args, run_dir: Path, ema, step: int) -> None:
+    """ema_at<step>.pt in the run folder and in publish_dir (Args.keep_ema_at)."""
+    name = f"ema_at{step}.pt"
+    meta = {"step": step, "recipe": "dqn_hscl", "last_action": args.last_action, "ema_decay": args.ema_decay,
+            "train_args": _plain(args)}
+    save_model(run_dir / name, ema, args.network_config(), meta)
+    if args.publish_dir:
+        Path(args.publish_dir).mkdir(parents=True, exist_ok=True)
+        save_model(Path(args.publish_dir) / name, ema, args.network_config(), meta)
 
 
 def _plain(args: Args) -> dict:
@@ -1405,6 +1424,10 @@ def main(argv=None) -> int:
     values = {f.name: getattr(ns, f.name) for f in dataclasses.fields(Args)}
     values["stages"] = tuple(values["stages"])
     try:
+        bad = [k for k in values["keep_ema_at"] if not str(k).isdigit()]
+        if bad:
+            raise ValueError(f"keep_ema_at takes learner steps (whole numbers), got {bad}")
+        values["keep_ema_at"] = tuple(int(k) for k in values["keep_ema_at"])
         args = Args(**values)
         args.validate()
     except ValueError as exc:
@@ -1414,7 +1437,8 @@ def main(argv=None) -> int:
     saved = run_dir / "config.json"
     if saved.is_file():
         old = json.loads(saved.read_text())
-        schedule = {"total_steps", "session_minutes", "resume_refill", "eval_every", "log_every", "checkpoint_minutes", "publish_dir", "threads"}
+        schedule = {"total_steps", "session_minutes", "resume_refill", "eval_every", "log_every", "checkpoint_minutes", "publish_dir", "threads",
+                    "keep_ema_at"}
         defaults = _plain(Args())  # a field added after the run started has its default there
         differ = sorted(k for k, v in _plain(args).items() if k not in schedule and old.get(k, defaults[k]) != v)
         if differ:
