@@ -1272,9 +1272,11 @@ def _keep_ema(args: Args, run_dir: Path, ema, step: int) -> None:
     meta = {"step": step, "recipe": "dqn_hscl", "last_action": args.last_action, "ema_decay": args.ema_decay,
             "train_args": _plain(args)}
     save_model(run_dir / name, ema, args.network_config(), meta)
-    if args.publish_dir:
-        Path(args.publish_dir).mkdir(parents=True, exist_ok=True)
-        save_model(Path(args.publish_dir) / name, ema, args.network_config(), meta)
+    if args.publish_dir:  # written whole, then renamed, as _checkpoint publishes
+        pub = Path(args.publish_dir)
+        pub.mkdir(parents=True, exist_ok=True)
+        (pub / (name + ".tmp")).write_bytes((run_dir / name).read_bytes())
+        os.replace(pub / (name + ".tmp"), pub / name)
 
 
 def _plain(args: Args) -> dict:
