@@ -78,6 +78,16 @@ elif sys.argv[1] in ("fit", "fit_strict"):
     parts = [torch.load(f) for f in sys.argv[6:]]
     X = [torch.cat(c) for c in zip(*(p["X"] for p in parts))]
     Y, M = torch.cat([p["Y"] for p in parts]), torch.cat([p["M"] for p in parts])
+    # FIT_ROWS=inter / other / ongoal / alone: only the interacting rows (off goal, another agent in view), only
+    # the others, or the others split
+    subset = __import__("os").environ.get("FIT_ROWS", "all")
+    if subset != "all":
+        # ongoal / alone: the others split by whether another agent is in view (fov channel 1): the rest of the rows
+        # with someone in view are agents on their goals
+        seen = X[0][:, 1].flatten(1).sum(1) > 0
+        sel = {"inter": M, "other": ~M, "ongoal": ~M & seen, "alone": ~M & ~seen}[subset]
+        X, Y, M = [x[sel] for x in X], Y[sel], M[sel]
+        parts = [{"L": torch.cat([p["L"] for p in parts])[sel]}] if "L" in parts[0] else parts
     T = float(meta.get("train_args", {}).get("temperature", 0.1))
     strict = STRICT
     if strict:  # the recipe's target: the label itself, each row in a random one of the eight orientations
