@@ -45,6 +45,7 @@ def test_dqn_hscl_logs_what_it_learns_and_resumes(repo_root, tmp_path):
         assert float(r["hscl_weight"]) > 0 and float(r["learner_steps_per_s"]) > 0
         assert -1.0 <= float(r["q_return_corr"]) <= 1.0 and float(r["td_abs"]) >= 0
         assert r["agreement_meet"] == "" or 0.0 <= float(r["agreement_meet"]) <= 1.0  # empty: no agents met
+        assert 0.0 <= float(r["ongoal_share"]) <= 1.0  # expert rows of agents on their goal with another in view
         assert r["contact_share"] == r["agreement_contact"] == ""  # no priority channel: who comes first is unseen
         assert 0 <= int(r["blocker_move_labels"]) <= int(r["blocker_rows"])
         assert 0 <= int(r["blocker_states"]) <= int(r["blocker_rows"])
@@ -243,6 +244,18 @@ def test_an_imitation_run_weighs_the_pushed_blockers_rows(repo_root, tmp_path):
     assert [int(r["step"]) for r in rows] == [4, 8, 12] and all(float(r["l_hscl"]) > 0 for r in rows)
     bad = _run(repo_root, tmp_path, "--run-name", "bw2", "--blocker-weight", "4")  # the HSCL term: refused
     assert bad.returncode == 2 and "blocker_weight" in bad.stderr
+
+
+def test_an_imitation_run_can_drop_the_experts_labels_of_agents_on_their_goal(repo_root, tmp_path):
+    run = _run(repo_root, tmp_path, "--run-name", "og", "--stages", "2x6", "--imitation", "ce", "--ongoal-weight", "0",
+               "--greedy-fraction", "0.5", "--stuck-steps", "2", "--stuck-rollout", "8", "--mine-episodes", "2",
+               "--mined-batch-share", "0.25")
+    assert run.returncode == 0, run.stderr[-3000:]
+    rows = _rows(tmp_path / "runs" / "og" / "train.csv")
+    assert [int(r["step"]) for r in rows] == [4, 8, 12]
+    assert all(0.0 <= float(r["ongoal_share"]) <= 1.0 and float(r["l_hscl"]) >= 0 for r in rows)
+    bad = _run(repo_root, tmp_path, "--run-name", "og2", "--ongoal-weight", "0")  # the HSCL term: refused
+    assert bad.returncode == 2 and "ongoal_weight" in bad.stderr
 
 
 def test_greedy_episodes_get_out_of_fixed_points_by_rollouts(repo_root, tmp_path):

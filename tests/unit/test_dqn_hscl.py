@@ -582,6 +582,35 @@ def test_meet_weight_weighs_the_meeting_rows_in_the_ce_term():
         Args(imitation="ce", meet_weight=-1.0).validate()
 
 
+def test_ongoal_weight_weighs_the_expert_rows_of_agents_on_their_goal_not_the_searchs():
+    from mapf_policy.train.dqn_hscl import ongoal_rows
+    q = torch.tensor([[0.3, 0.1, 0.0, -0.2, 0.5], [1.0, 1.2, 0.9, 0.8, 1.1], [0.0, 0.4, 0.0, 0.0, 0.2],
+                      [0.2, 0.0, 0.6, 0.0, 0.1]])
+    fov = torch.zeros(4, 6, 9, 9)
+    fov[0, 2, 4, 4] = 1.0  # row 0 off its goal, alone
+    fov[1:, 1, 2, 6] = 1.0  # rows 1-3 on their goals (no heuristic bit at the centre), another agent in view
+    assert ongoal_rows(fov).tolist() == [False, True, True, True]
+    batch = {"action": torch.zeros(4, dtype=torch.long), "ret": torch.zeros(4), "boot_gamma": torch.zeros(4),
+             "expert": torch.tensor([4, 0, 1, -1]), "blocker": torch.zeros(4, dtype=torch.bool), "fov": fov}
+    per_row = [float(-torch.log_softmax((q[i] - q[i].mean()) / 0.1, dim=0)[k]) for i, k in ((0, 4), (1, 0), (2, 1))]
+    _, plain, _ = losses(q, torch.zeros(4, 5), batch, Args(imitation="ce"))
+    assert float(plain) == pytest.approx(sum(per_row) / 3, rel=1e-5)
+    _, dropped, _ = losses(q, torch.zeros(4, 5), batch, Args(imitation="ce", ongoal_weight=0.0))
+    assert float(dropped) == pytest.approx(per_row[0], rel=1e-5)  # the expert's on-goal labels weigh nothing
+    # rows 2 and 3 came from the mined replay: the search's on-goal label (row 2) keeps its weight
+    _, mined, _ = losses(q, torch.zeros(4, 5), batch, Args(imitation="ce", ongoal_weight=0.0), n_main=2)
+    assert float(mined) == pytest.approx((per_row[0] + per_row[2]) / 2, rel=1e-5)
+    _, half, _ = losses(q, torch.zeros(4, 5), batch, Args(imitation="ce", ongoal_weight=0.5), n_main=2)
+    assert float(half) == pytest.approx((per_row[0] + 0.5 * per_row[1] + per_row[2]) / 2.5, rel=1e-5)
+    only_ongoal = batch | {"expert": torch.tensor([-1, 0, -1, -1])}
+    _, none, _ = losses(q, torch.zeros(4, 5), only_ongoal, Args(imitation="ce", ongoal_weight=0.0))
+    assert float(none) == 0.0 and torch.isfinite(none)
+    with pytest.raises(ValueError, match="ongoal_weight"):
+        Args(ongoal_weight=0.0).validate()  # the HSCL term
+    with pytest.raises(ValueError, match="ongoal_weight"):
+        Args(imitation="ce", ongoal_weight=-1.0).validate()
+
+
 def test_episode_rows_mark_the_pushed_blockers():
     from mapf_policy.train.dqn_hscl import episode_rows
     env = MapfEnv(np.zeros((3, 3), dtype=bool), [(0, 0), (0, 1)], [(0, 2), (0, 1)], max_steps=4)

@@ -281,6 +281,13 @@ class Args:
     blocker_weight where both apply). Such rows are about half the labelled rows at 4 agents on 20x20 (train.csv
     `meet_share`), and the held-out agreement with the expert there stays near 0.945 whatever the training data
     (issue 20, thirty-first session). 1: every labelled row alike."""
+    ongoal_weight: float = 1.0
+    """Beyond the paper: with `imitation` 'ce', an expert-labelled row whose agent stands on its goal with another agent
+    in its field of view (ongoal_rows) weighs this many times an ordinary labelled row in the imitation term (times
+    blocker_weight where both apply); the rollout search's labels (the mined replay, mined_batch_share) keep weight 1.
+    The per-step expert labels such rows "stay" 99 % of the time, yet a greedy team at 16 agents finishes only where
+    an agent on its goal yields; fitting those labels harder costs rung 3 half its cases (issue 20, forty-second
+    session). 0: no expert label there, the yield is left to the reward term and the search. 1: every row alike."""
     expert: str = "odrmstar"
     """'odrmstar' (the paper's), 'prioritized' (beyond the paper: prioritized planning in index order, ODrM* where it
     finds no plan; with `priority` its give-way rule is in the observation: train/expert.py), or 'shortest_path' (a
@@ -383,6 +390,9 @@ class Args:
         need(self.meet_weight > 0, f"meet_weight must be > 0, got {self.meet_weight}")
         need(self.meet_weight == 1.0 or (self.imitation == "ce" and not self.recurrent),
              "meet_weight != 1 needs imitation 'ce' and a feed-forward network")
+        need(self.ongoal_weight >= 0, f"ongoal_weight must be >= 0, got {self.ongoal_weight}")
+        need(self.ongoal_weight == 1.0 or (self.imitation == "ce" and not self.recurrent),
+             "ongoal_weight != 1 needs imitation 'ce' and a feed-forward network")
         need(0.0 < self.tau_h < 0.2, f"tau_h must lie in (0, 0.2), got {self.tau_h}")
         need(self.lr_end >= 0, f"lr_end must be >= 0, got {self.lr_end}")
         need(0 <= self.ema_decay < 1, f"ema_decay must be in [0, 1), got {self.ema_decay}")
@@ -866,6 +876,13 @@ def meeting_rows(fov: torch.Tensor) -> torch.Tensor:
     return (fov[:, 1].flatten(1).amax(1) > 0) & (fov[:, 2:6, c, c].amax(1) > 0)
 
 
+def ongoal_rows(fov: torch.Tensor) -> torch.Tensor:
+    """(B,) bool: rows whose agent stands on its goal (no heuristic bit at its own cell, channels 2-5) with another
+    agent in its field of view (channel 1): where a greedy team's fixed points wait for a yield (Args.ongoal_weight)."""
+    c = fov.shape[-1] // 2
+    return (fov[:, 1].flatten(1).amax(1) > 0) & (fov[:, 2:6, c, c].amax(1) == 0)
+
+
 def contact_rows(fov: torch.Tensor, priority_channel: int) -> torch.Tensor:
     """(B,) bool: rows whose agent is off its goal with an earlier agent (marked in the priority channel, at index
     `priority_channel` of the fov) in one of its four neighbour cells: it touches the agent the give-way order says
@@ -877,11 +894,12 @@ def contact_rows(fov: torch.Tensor, priority_channel: int) -> torch.Tensor:
 
 
 def losses(q: torch.Tensor, next_q_target: torch.Tensor, batch: dict, args: Args,
-           next_q_online: torch.Tensor | None = None, q_target: torch.Tensor | None = None) -> tuple:
+           next_q_online: torch.Tensor | None = None, q_target: torch.Tensor | None = None,
+           n_main: int | None = None) -> tuple:
     """(DQN term, HSCL term, TD errors): Huber on the n-step TD error; HSCL on the advantage (dueling) or on Q.
     With `next_q_online` (double DQN) the bootstrap is the target network's value of the online argmax. With
     `q_target`, the target network's Q(s, .) of the rows' own states, the target is advantage learning's
-    (Args.advantage_learning)."""
+    (Args.advantage_learning). Rows from `n_main` on came from the mined replay (mixed_sample; None: none did)."""
     q_taken = q.gather(1, batch["action"][:, None]).squeeze(1)
     if next_q_online is None:
         boot = next_q_target.max(dim=1).values
@@ -911,7 +929,10 @@ def losses(q: torch.Tensor, next_q_target: torch.Tensor, batch: dict, args: Args
                 w = torch.where(batch["blocker"][labelled], args.blocker_weight, w)
             if args.meet_weight != 1.0:
                 w = torch.where(meeting_rows(batch["fov"][labelled]), w * args.meet_weight, w)
-            l_hscl = (w * ce).sum() / w.sum()
+            if args.ongoal_weight != 1.0:
+                expert_row = torch.arange(len(q)) < (len(q) if n_main is None else n_main)  # not the search's
+                w = torch.where((ongoal_rows(batch["fov"]) & expert_row)[labelled], w * args.ongoal_weight, w)
+            l_hscl = (w * ce).sum() / w.sum().clamp_min(1e-12)  # 0 where every labelled row weighs 0
         else:
             l_hscl = hscl_loss(scores[labelled], batch["expert"][labelled], args.tau_h, args.temperature)
     else:
@@ -952,7 +973,7 @@ def greedy_success(forward, cases: list, last_action: str, max_steps: int) -> tu
 
 TRAIN_COLUMNS = ("step", "stage", "episodes", "l_dqn", "l_hscl", "hscl_weight", "dqn_share", "td_abs", "td_refused",
                  "refused_minus_stay", "refused_rows", "adv_norm", "q_mean", "mc_return_mean", "q_return_corr", "agreement",
-                 "agreement_meet", "meet_share", "agreement_contact", "contact_share", "train_success", "train_steps",
+                 "agreement_meet", "meet_share", "ongoal_share", "agreement_contact", "contact_share", "train_success", "train_steps",
                  "mean_team", "samples_per_s", "learner_steps_per_s", "env_rows_per_s",
                  "epsilon", "blocked_share", "rescued_episodes", "blocker_rows", "blocker_move_labels", "blocker_states",
                  "deviations", "mined_labels", "pp_label_share", "elapsed_s")
@@ -1094,7 +1115,7 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                                              *next_still) if args.double_dqn else None)
                         q_target = (target_q(batch["fov"], batch["last_action"], batch["position"], *still)
                                     if args.advantage_learning > 0 else None)
-                l_dqn, l_hscl, td = losses(q, next_q, batch, args, next_online, q_target)
+                l_dqn, l_hscl, td = losses(q, next_q, batch, args, next_online, q_target, n_main)
                 loss = args.dqn_weight * l_dqn + state["hscl_weight"] * l_hscl
                 state["step"] += 1
                 if args.lr_end > 0:
@@ -1132,6 +1153,8 @@ def train(args: Args, run_dir: Path, progress: bool = True) -> dict:
                         m["agreement"].append(expert_agreement(q.detach()[lab], batch["expert"][lab]))
                     meet = lab & meeting_rows(batch["fov"])
                     m["meet_share"].append(float(meet.sum()) / max(1, int(lab.sum())))
+                    ongoal = (lab & ongoal_rows(batch["fov"]))[:n_main]  # the expert's rows, not the search's
+                    m["ongoal_share"].append(float(ongoal.sum()) / max(1, int(lab[:n_main].sum())))
                     if meet.any():
                         m["agreement_meet"].append(expert_agreement(q.detach()[meet], batch["expert"][meet]))
                     if ncfg.priority:  # rows touching an earlier agent: their share and agreement (contact_rows)
@@ -1206,7 +1229,7 @@ def _log_row(args: Args, state: dict, window: dict, session_t0: float, epsilon: 
             "refused_minus_stay": mean("refused_minus_stay"),
             "refused_rows": int(sum(window["m"]["refused_rows"])), "adv_norm": mean("adv_norm"), "q_mean": mean("q_mean"),
             "mc_return_mean": mean("mc_return_mean"), "q_return_corr": mean("q_return_corr"), "agreement": mean("agreement"),
-            "agreement_meet": mean("agreement_meet"), "meet_share": mean("meet_share"),
+            "agreement_meet": mean("agreement_meet"), "meet_share": mean("meet_share"), "ongoal_share": mean("ongoal_share"),
             "agreement_contact": mean("agreement_contact"), "contact_share": mean("contact_share"),
             "train_success": float(np.mean([e["success"] for e in eps if not e["expert_drove"]] or [np.nan])),
             "train_steps": float(np.mean([e["steps"] for e in eps] or [np.nan])),
