@@ -1382,7 +1382,11 @@ def plot_run(run_dir: Path) -> Path | None:
         ax[1, 0].plot(s, log["agreement_meet"], lw=1, label="off goal, another agent in view")
     if "agreement_contact" in log and np.isfinite(log["agreement_contact"]).any():
         ax[1, 0].plot(s, log["agreement_contact"], lw=1, label="off goal, touching an earlier agent")
-    ax[1, 0].set_title("argmax Q = expert label (batch)"), ax[1, 0].legend(fontsize=7)
+    for key, label in (("meet_share", "share of labelled rows: off goal, another in view"),
+                       ("ongoal_share", "share of expert rows: on goal, another in view")):
+        if key in log and np.isfinite(log[key]).any():
+            ax[1, 0].plot(s, log[key], ":", lw=1, label=label)
+    ax[1, 0].set_title("argmax Q = expert label (batch)"), ax[1, 0].legend(fontsize=6)
     ax[1, 1].plot(s, log["train_success"], lw=1, label="training episodes (eps-greedy)")
     if ev:
         for st in sorted(set(ev["stage"])):
