@@ -869,18 +869,27 @@ def recurrent_batch(net: QNetwork, target: QNetwork, online_fast, target_fast, a
 
 
 # --- losses and what to look at -----------------------------------------------------------------------------
+def off_goal(fov: torch.Tensor) -> torch.Tensor:
+    """(B,) bool: the row's agent is off its goal (a heuristic bit, channels 2-5, set at its own cell)."""
+    c = fov.shape[-1] // 2
+    return fov[:, 2:6, c, c].amax(1) > 0
+
+
+def sees_another(fov: torch.Tensor) -> torch.Tensor:
+    """(B,) bool: another agent is in the row's field of view (channel 1)."""
+    return fov[:, 1].flatten(1).amax(1) > 0
+
+
 def meeting_rows(fov: torch.Tensor) -> torch.Tensor:
     """(B,) bool: rows whose agent is off its goal (a heuristic bit set at its own cell, channels 2-5) with another
     agent in its field of view (channel 1): where the labels depend on the others (issue 20, thirty-first session)."""
-    c = fov.shape[-1] // 2
-    return (fov[:, 1].flatten(1).amax(1) > 0) & (fov[:, 2:6, c, c].amax(1) > 0)
+    return sees_another(fov) & off_goal(fov)
 
 
 def ongoal_rows(fov: torch.Tensor) -> torch.Tensor:
     """(B,) bool: rows whose agent stands on its goal (no heuristic bit at its own cell, channels 2-5) with another
     agent in its field of view (channel 1): where a greedy team's fixed points wait for a yield (Args.ongoal_weight)."""
-    c = fov.shape[-1] // 2
-    return (fov[:, 1].flatten(1).amax(1) > 0) & (fov[:, 2:6, c, c].amax(1) == 0)
+    return sees_another(fov) & ~off_goal(fov)
 
 
 def contact_rows(fov: torch.Tensor, priority_channel: int) -> torch.Tensor:
@@ -890,7 +899,7 @@ def contact_rows(fov: torch.Tensor, priority_channel: int) -> torch.Tensor:
     against 0.83-0.98; issue 20, thirty-fourth session)."""
     c = fov.shape[-1] // 2
     touch = fov[:, priority_channel, [c - 1, c + 1, c, c], [c, c, c - 1, c + 1]].amax(1) > 0
-    return touch & (fov[:, 2:6, c, c].amax(1) > 0)
+    return touch & off_goal(fov)
 
 
 def losses(q: torch.Tensor, next_q_target: torch.Tensor, batch: dict, args: Args,
